@@ -1,0 +1,161 @@
+"""A recording: events plus what the method needs around them (camera, depth, keyframes).
+
+The types here are what readers return, what the simulator produces and what the method
+consumes. Construction validates consistency (depth maps match the sensor, sorted times,
+one ground-truth label per event) and raises ``ValueError`` naming the problem.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from spatialseg.events import EventStream
+
+__all__ = ["Camera", "DepthMap", "GroundTruth", "Keyframe", "Recording"]
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics in pixels and the sensor size: ``u = fx X / Z + cx``."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        values = (self.fx, self.fy, self.cx, self.cy)
+        if not all(np.isfinite(v) for v in values) or self.fx <= 0 or self.fy <= 0:
+            raise ValueError(
+                f"camera intrinsics fx={self.fx} fy={self.fy} cx={self.cx} cy={self.cy}: "
+                "focal lengths must be positive and all values finite"
+            )
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise ValueError(f"camera size {self.width}x{self.height} must be positive")
+
+
+@dataclass(frozen=True, eq=False)
+class DepthMap:
+    """Per-pixel depth in metres at time ``t`` (float32, H x W); NaN or <= 0 means unknown."""
+
+    t: float
+    depth: np.ndarray
+    source: str = field(default="<memory>", compare=False)
+
+    def __post_init__(self) -> None:
+        d = np.asarray(self.depth)
+        if d.ndim != 2:
+            raise ValueError(f"{self.source}: depth map must be 2-D (H x W), got shape {d.shape}")
+        object.__setattr__(self, "depth", np.ascontiguousarray(d, dtype=np.float32))
+        object.__setattr__(self, "t", float(self.t))
+        if not np.isfinite(self.t):
+            raise ValueError(f"{self.source}: depth map time {self.t} is not finite")
+
+
+@dataclass(frozen=True, eq=False)
+class Keyframe:
+    """A grayscale (H x W) or colour (H x W x 3) uint8 image at time ``t``."""
+
+    t: float
+    image: np.ndarray
+    source: str = field(default="<memory>", compare=False)
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruth:
+    """Evaluation-only truth: an object id per event (-1 for noise) and each object's velocity.
+
+    ``motions`` maps object id to its 3-D velocity (vx, vy, vz) in m/s in camera
+    coordinates; ``names`` optionally maps object id to a human-readable name.
+    """
+
+    labels: np.ndarray
+    motions: Mapping[int, np.ndarray]
+    names: Mapping[int, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "labels", np.asarray(self.labels, dtype=np.int64))
+        motions = {int(k): np.asarray(v, dtype=np.float64) for k, v in self.motions.items()}
+        for k, v in motions.items():
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"ground truth motion of object {k} must be 3 finite numbers")
+        object.__setattr__(self, "motions", motions)
+        unknown = set(np.unique(self.labels[self.labels >= 0]).tolist()) - set(motions)
+        if unknown:
+            raise ValueError(
+                f"ground truth labels name objects {sorted(unknown)} with no motion; "
+                "add them to motions.json"
+            )
+
+    def select(self, index: slice | np.ndarray) -> GroundTruth:
+        """Ground truth for a subset of events."""
+        return replace(self, labels=self.labels[index])
+
+
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """Events, camera, time-sorted depth maps, optional keyframes and optional ground truth."""
+
+    events: EventStream
+    camera: Camera
+    depth_maps: tuple[DepthMap, ...] = ()
+    keyframes: tuple[Keyframe, ...] = ()
+    ground_truth: GroundTruth | None = None
+    name: str = "recording"
+
+    def __post_init__(self) -> None:
+        ev, cam = self.events, self.camera
+        object.__setattr__(self, "depth_maps", tuple(self.depth_maps))
+        object.__setattr__(self, "keyframes", tuple(self.keyframes))
+        if (ev.width, ev.height) != (int(cam.width), int(cam.height)):
+            raise ValueError(
+                f"{self.name}: events are {ev.width}x{ev.height} but the camera is "
+                f"{cam.width}x{cam.height}; they must describe the same sensor"
+            )
+        for d in self.depth_maps:
+            if d.depth.shape != (cam.height, cam.width):
+                raise ValueError(
+                    f"{d.source}: depth map shape {d.depth.shape} does not match the sensor "
+                    f"(H, W) = ({cam.height}, {cam.width})"
+                )
+        times = [d.t for d in self.depth_maps]
+        if times != sorted(times):
+            raise ValueError(f"{self.name}: depth maps are not sorted by time")
+        gt = self.ground_truth
+        if gt is not None and gt.labels.shape != (len(ev),):
+            raise ValueError(
+                f"{self.name}: ground truth has {gt.labels.size} labels for {len(ev)} events; "
+                "give exactly one label per event"
+            )
+
+    def select(self, index: slice | np.ndarray) -> Recording:
+        """The same recording restricted to a subset of its events."""
+        gt = self.ground_truth.select(index) if self.ground_truth is not None else None
+        return replace(self, events=self.events.select(index), ground_truth=gt)
+
+    def windows(self) -> Iterator[tuple[np.ndarray, Recording]]:
+        """Yield ``(event_indices, window)`` for each pair of consecutive depth maps.
+
+        A window holds the events with ``T_i <= t < T_{i+1}`` (the last one also takes
+        events at exactly ``T_{i+1}``) and the two depth maps bounding it.
+        """
+        maps = self.depth_maps
+        if len(maps) < 2:
+            raise ValueError(
+                f"{self.name}: {len(maps)} depth map(s); EDPA needs at least two "
+                "(one at the window's start and one at its end)"
+            )
+        t = self.events.t
+        for i in range(len(maps) - 1):
+            last = i == len(maps) - 2
+            lo = np.searchsorted(t, maps[i].t, side="left")
+            hi = np.searchsorted(t, maps[i + 1].t, side="right" if last else "left")
+            index = np.arange(lo, hi)
+            window = self.select(slice(int(lo), int(hi)))
+            frames = tuple(k for k in self.keyframes if maps[i].t <= k.t <= maps[i + 1].t)
+            yield index, replace(window, depth_maps=(maps[i], maps[i + 1]), keyframes=frames)
