@@ -62,20 +62,23 @@ def _check_keys(composed: Any, reference: Any, path: str) -> None:
             _check_keys(composed[key], reference[key], where)
 
 
-def validate_config(cfg: DictConfig, choices: Mapping[str, str | None]) -> None:
-    """Check ``cfg`` against ``conf/config.yaml`` and each chosen group option's YAML.
+def validate_config(
+    cfg: DictConfig, choices: Mapping[str, str | None], primary: str = "config.yaml"
+) -> None:
+    """Check ``cfg`` against the primary ``conf/<primary>`` and each chosen group option's YAML.
 
     ``choices`` maps group name to the selected option (Hydra's ``runtime.choices``).
     Keys a group option does not define (e.g. ``optimizer.typo``) are rejected too, except
     in groups whose options declare ``_open_: true`` (free-form sections).
     """
     root = conf_dir()
-    reference = OmegaConf.to_container(OmegaConf.load(root / "config.yaml"), resolve=False)
+    reference = OmegaConf.to_container(OmegaConf.load(root / primary), resolve=False)
     assert isinstance(reference, dict)
     reference.pop("defaults", None)
     groups = _groups()
     for group in groups:
-        reference.setdefault(group, {})
+        if group != "hydra":
+            reference.setdefault(group, {})
     for key in _HYDRA_KEYS:
         reference[key] = {}
     for key in cfg:
