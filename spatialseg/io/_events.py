@@ -1,0 +1,212 @@
+"""Bare event files: ``.txt`` (RPG), ``.h5``/``.hdf5`` (DSEC layout) and ``.npz``.
+
+HDF5: datasets ``events/x``, ``events/y``, ``events/t``, ``events/p``; a float ``t`` is in
+seconds, an integer ``t`` in microseconds (DSEC) plus the root dataset ``t_offset`` (µs)
+when present; the sensor size is stored as attributes ``width``/``height`` of ``events``.
+npz: arrays ``t`` (seconds), ``x``, ``y``, ``p`` and optionally 0-d ``width``, ``height``.
+"""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from spatialseg.events import EventStream, normalise_polarity
+from spatialseg.io._atomic import atomic_file
+from spatialseg.io._text import read_events_txt, write_events_txt
+
+__all__ = [
+    "PathLike",
+    "agreed_size",
+    "events_kind",
+    "load_events",
+    "read_events",
+    "save_events",
+    "stored_sensor_size",
+    "write_events",
+]
+
+PathLike = str | os.PathLike[str]
+Size = tuple[int, int]
+
+#: Events file kind by (lower-case) suffix.
+_KINDS = {".txt": "txt", ".h5": "h5", ".hdf5": "h5", ".npz": "npz"}
+_FIELDS = ("t", "x", "y", "p")
+
+
+def events_kind(path: Path) -> str:
+    """``"txt"``, ``"h5"`` or ``"npz"`` from the file's suffix (ValueError for any other)."""
+    kind = _KINDS.get(path.suffix.lower())
+    if kind is None:
+        raise ValueError(
+            f"{path}: unknown events file type {path.suffix!r}; use .txt, .h5, .hdf5 or .npz"
+        )
+    return kind
+
+
+def agreed_size(candidates: Sequence[tuple[str, Size | None]]) -> Size | None:
+    """The sensor size ``(width, height)`` the known sources give; they must all agree."""
+    known = [(source, size) for source, size in candidates if size is not None]
+    for source, size in known[1:]:
+        if size != known[0][1]:
+            raise ValueError(
+                f"{source}: sensor size {size[0]}x{size[1]} differs from "
+                f"{known[0][1][0]}x{known[0][1][1]} given by {known[0][0]}; make them agree"
+            )
+    return known[0][1] if known else None
+
+
+def _size_pair(source: str, width: object, height: object) -> Size | None:
+    """A ``(width, height)`` given as both or neither, each a positive integer."""
+    if width is None and height is None:
+        return None
+    if width is None or height is None:
+        raise ValueError(f"{source}: give both width and height or neither")
+    w, h = np.asarray(width), np.asarray(height)
+    if not (w.shape == h.shape == () and w.dtype.kind in "iu" and h.dtype.kind in "iu"):
+        raise ValueError(f"{source}: width={width!r} height={height!r} must be integers")
+    if w <= 0 or h <= 0:
+        raise ValueError(f"{source}: sensor size {w}x{h} must be positive")
+    return int(w), int(h)
+
+
+def _require_file(path: Path) -> None:
+    """Raise FileNotFoundError naming ``path`` if it is not a file."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: events file not found")
+
+
+def _open_h5(path: Path) -> h5py.File:
+    """Open an HDF5 file for reading, or a ValueError naming it."""
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot open as HDF5 ({exc})") from None
+
+
+def _h5_events(f: h5py.File, path: Path) -> h5py.Group:
+    """The ``events`` group holding datasets x, y, t, p, or a ValueError naming what is missing."""
+    group = f.get("events")
+    missing = [k for k in _FIELDS if not isinstance(group, h5py.Group) or k not in group]
+    if missing:
+        raise ValueError(
+            f"{path}: missing {', '.join('events/' + k for k in missing)}; "
+            "expected datasets events/x, events/y, events/t, events/p (the DSEC layout)"
+        )
+    return group
+
+
+def _open_npz(path: Path) -> np.lib.npyio.NpzFile:
+    """Open an ``.npz`` archive (no pickles), or a ValueError naming it."""
+    try:
+        archive = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"{path}: cannot read as .npz ({exc})") from None
+    if not isinstance(archive, np.lib.npyio.NpzFile):
+        raise ValueError(f"{path}: holds a single array, not an .npz archive of t, x, y, p")
+    return archive
+
+
+def stored_sensor_size(path: Path) -> Size | None:
+    """The sensor size an events file records (HDF5 attributes, npz arrays); None for .txt."""
+    kind = events_kind(path)
+    _require_file(path)
+    if kind == "h5":
+        with _open_h5(path) as f:
+            attrs = _h5_events(f, path).attrs
+            source = f"{path} (attributes of events)"
+            return _size_pair(source, attrs.get("width"), attrs.get("height"))
+    if kind == "npz":
+        with _open_npz(path) as archive:
+            return _size_pair(str(path), archive.get("width"), archive.get("height"))
+    return None
+
+
+def _read_h5_arrays(path: Path) -> tuple[np.ndarray, ...]:
+    """``t`` (seconds), ``x``, ``y``, ``p`` of an HDF5 file; integer t is DSEC's microseconds."""
+    with _open_h5(path) as f:
+        group = _h5_events(f, path)
+        t, x, y, p = (group[k][()] for k in _FIELDS)
+        offset = f["t_offset"][()] if "t_offset" in f else 0
+    if t.dtype.kind in "iu":
+        t = (t.astype(np.int64) + np.int64(offset)) / 1e6
+    return t, x, y, p
+
+
+def _read_npz_arrays(path: Path) -> tuple[np.ndarray, ...]:
+    """``t`` (seconds), ``x``, ``y``, ``p`` of an ``.npz`` archive."""
+    with _open_npz(path) as archive:
+        missing = [k for k in _FIELDS if k not in archive.files]
+        if missing:
+            raise ValueError(
+                f"{path}: missing array(s) {', '.join(missing)}; "
+                "expected t, x, y, p (and optionally width, height)"
+            )
+        return tuple(archive[k] for k in _FIELDS)
+
+
+def load_events(path: Path, size: Size) -> EventStream:
+    """The validated events of a file for a sensor of ``size = (width, height)``."""
+    kind = events_kind(path)
+    _require_file(path)
+    if kind == "txt":
+        return read_events_txt(path, *size)
+    t, x, y, p = _read_h5_arrays(path) if kind == "h5" else _read_npz_arrays(path)
+    return EventStream(x, y, t, normalise_polarity(p, str(path)), *size, source=str(path))
+
+
+def read_events(
+    path: PathLike, *, width: int | None = None, height: int | None = None
+) -> EventStream:
+    """Read a bare ``.txt``/``.h5``/``.hdf5``/``.npz`` events file; size from the file or args."""
+    path = Path(path)
+    size = agreed_size(
+        [
+            ("width=/height=", _size_pair("width=/height=", width, height)),
+            (str(path), stored_sensor_size(path)),
+        ]
+    )
+    if size is None:
+        raise ValueError(
+            f"{path}: sensor size unknown (the file does not store it); pass width= and height="
+        )
+    return load_events(path, size)
+
+
+def _disk_arrays(events: EventStream) -> dict[str, np.ndarray]:
+    """Compact on-disk arrays: t float64 seconds, x/y smallest unsigned type, p 0/1 uint8."""
+    pixel = np.min_scalar_type(max(events.width, events.height) - 1)
+    return {
+        "t": events.t,
+        "x": events.x.astype(pixel),
+        "y": events.y.astype(pixel),
+        "p": (events.p > 0).astype(np.uint8),
+    }
+
+
+def save_events(events: EventStream, path: Path, kind: str) -> None:
+    """Write events to a new file of ``kind`` (``"txt"``, ``"h5"``, ``"npz"``), not atomically."""
+    if kind == "txt":
+        write_events_txt(events, path)
+    elif kind == "h5":
+        with h5py.File(path, "w-") as f:
+            group = f.create_group("events")
+            for name, array in _disk_arrays(events).items():
+                group.create_dataset(name, data=array)
+            group.attrs["width"], group.attrs["height"] = events.width, events.height
+    else:
+        with path.open("xb") as f:
+            np.savez(f, **_disk_arrays(events), width=events.width, height=events.height)
+
+
+def write_events(events: EventStream, path: PathLike) -> None:
+    """Write events to ``path`` atomically, in the format its suffix names (.txt, .h5, .npz)."""
+    path = Path(path)
+    kind = events_kind(path)
+    with atomic_file(path) as tmp:
+        save_events(events, tmp, kind)
