@@ -10,45 +10,112 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from hydra.errors import InstantiationException
+from omegaconf import DictConfig, OmegaConf
 
-from spatialseg.config import conf_dir, validate_config
+from spatialseg.config import ConfigError, conf_dir, validate_config
 
-__all__ = ["main"]
+__all__ = ["guarded", "launch", "main", "run"]
 
 log = logging.getLogger("spatialseg")
 
 #: Exceptions that signal a user mistake (bad input or config), reported in one line.
-USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError, PermissionError)
+USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, PermissionError)
 
 
-def run(cfg: DictConfig) -> None:
-    """Validate the config and run the job it describes."""
-    validate_config(cfg, HydraConfig.get().runtime.choices)
-    raise NotImplementedError(
-        "segmentation is not implemented yet; the method lands with the method issue"
-    )
-
-
-def _task(cfg: DictConfig) -> None:
-    """Hydra task: run, turning user mistakes into one line and exit status 2."""
+def build_optimizer(cfg: DictConfig) -> Any:
+    """Instantiate the configured optimiser, turning a bad hyperparameter into one line."""
     try:
-        run(cfg)
-    except (*USER_ERRORS, NotImplementedError) as exc:
-        if os.environ.get("SPATIALSEG_DEBUG"):
-            raise
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
+        return hydra.utils.instantiate(cfg.optimizer)
+    except InstantiationException as exc:
+        cause = exc.__cause__ or exc
+        raise ConfigError(f"optimizer: {cause}") from exc
 
 
-def main() -> None:
-    """Console entry point (``python -m spatialseg``)."""
+def _report(summary: dict[str, Any], out_dir: Path) -> None:
+    """Log the short end-of-run summary: clusters, velocities, accuracy, time."""
+    log.info(
+        "%s: %d events, %d clusters, %d iterations (%s)",
+        summary["scene"],
+        summary["n_events"],
+        summary["n_clusters"],
+        summary["iterations"],
+        summary["stop_reason"],
+    )
+    for c in summary["clusters"]:
+        theta = ", ".join(f"{v:+.4f}" for v in c["theta"])
+        log.info(
+            "  cluster %d: %6d events, theta = [%s] %s",
+            c["id"],
+            c["n_events"],
+            theta,
+            summary["units"],
+        )
+    if "metrics" in summary:
+        log.info("  accuracy %.4f (ground truth)", summary["metrics"]["accuracy"])
+    log.info("  time %.2f s; outputs in %s", summary["timings"]["total"], out_dir)
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """Validate the config, segment the scene, write the outputs; return result.json's content."""
+    from spatialseg.pipeline import log_iteration, segment_recording
+    from spatialseg.results import summarise, write_outputs
+    from spatialseg.scenes import load_scene
+
+    validate_config(cfg, HydraConfig.get().runtime.choices)
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    start = time.perf_counter()
+    recording = load_scene(cfg.scene, seed=int(cfg.seed), window_events=int(cfg.window.events))
+    timings = {"load": time.perf_counter() - start}
+    optimizer = build_optimizer(cfg)
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    progress = log_iteration if cfg.output.progress else None
+    begin = time.perf_counter()
+    seg = segment_recording(recording, plain, optimizer, seed=int(cfg.seed), on_iteration=progress)
+    timings["segment"] = time.perf_counter() - begin
+    timings["total"] = time.perf_counter() - start
+    summary = summarise(recording, seg, plain, timings)
+    if cfg.output.plots:
+        from spatialseg.plots import save_result_figures
+
+        save_result_figures(out_dir, recording, seg)
+    write_outputs(out_dir, seg, summary)
+    _report(summary, out_dir)
+    return summary
+
+
+def guarded(task: Callable[[DictConfig], object]) -> Callable[[DictConfig], None]:
+    """Wrap a Hydra task so a user mistake ends in one ``error:`` line and exit status 2."""
+
+    def wrapper(cfg: DictConfig) -> None:
+        try:
+            task(cfg)
+        except USER_ERRORS as exc:
+            if os.environ.get("SPATIALSEG_DEBUG"):
+                raise
+            print(f"error: {exc}", file=sys.stderr)
+            sys.exit(2)
+
+    return wrapper
+
+
+def launch(task: Callable[[DictConfig], object], config_name: str) -> None:
+    """Start a Hydra app on ``conf/<config_name>.yaml`` running ``task`` guarded."""
     try:
         path = str(conf_dir())
     except USER_ERRORS as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
-    hydra.main(version_base="1.3", config_path=path, config_name="config")(_task)()
+    hydra.main(version_base="1.3", config_path=path, config_name=config_name)(guarded(task))()
+
+
+def main() -> None:
+    """Console entry point (``python -m spatialseg``)."""
+    launch(run, "config")

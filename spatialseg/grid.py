@@ -17,7 +17,7 @@ __all__ = ["VoxelGrid", "grid_around"]
 
 @dataclass(frozen=True, eq=False)
 class VoxelGrid:
-    """An axis-aligned grid: ``shape`` voxels of ``voxel_size`` with voxel 0's centre at ``origin``."""
+    """An axis-aligned grid: ``shape`` voxels of ``voxel_size``, voxel 0 centred at ``origin``."""
 
     origin: np.ndarray
     voxel_size: np.ndarray
@@ -68,6 +68,6 @@ def grid_around(
     if n > max_voxels:
         raise ValueError(
             f"the volume would have {shape} = {n} voxels (limit {max_voxels}); "
-            "increase volume.xy_scale or decrease volume.z_bins"
+            "increase model.xy_scale or decrease volume.z_bins"
         )
     return VoxelGrid(origin=lo, voxel_size=size, shape=shape)

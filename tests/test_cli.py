@@ -1,0 +1,64 @@
+"""The command line: help works anywhere, user mistakes give one line and exit status 2."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+
+def spatialseg(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """Run ``python -m spatialseg ARGS`` in ``cwd`` the way a user does."""
+    return subprocess.run(
+        [sys.executable, "-m", "spatialseg", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_help_works_outside_the_checkout(tmp_path):
+    res = spatialseg("--help", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "spatialseg" in res.stdout and "optimizer" in res.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        ((), "no scene selected; add +scene=NAME"),
+        (("+scnee=interior",), "unknown config key 'scnee'"),
+        (
+            ("+scene=interior", "+clustering.tolerance=1"),
+            "unknown config key 'clustering.tolerance'",
+        ),
+        (("+scene=recording",), "scene=recording needs a path"),
+    ],
+)
+def test_user_mistakes_give_one_line(tmp_path, args, message):
+    res = spatialseg(*args, f"hydra.run.dir={tmp_path / 'out'}", cwd=tmp_path)
+    assert res.returncode == 2
+    assert message in res.stderr
+    assert "Traceback" not in res.stderr
+    assert res.stderr.strip().count("\n") == 0
+
+
+def test_unknown_config_name_lists_the_options(tmp_path):
+    res = spatialseg("+scene=interior", "optimizer=nosuch", cwd=tmp_path)
+    assert res.returncode != 0
+    assert "Could not find 'optimizer/nosuch'" in res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def test_missing_recording_directory_is_one_line(tmp_path):
+    res = spatialseg(
+        "+scene=recording",
+        f"scene.path={tmp_path / 'nope'}",
+        f"hydra.run.dir={tmp_path}",
+        cwd=tmp_path,
+    )
+    assert res.returncode == 2
+    assert "nope" in res.stderr and "Traceback" not in res.stderr
