@@ -1,0 +1,383 @@
+"""Initial motions from three time surfaces and k-means (METHOD.md section 2).
+
+Each lifted event is dropped onto three time surfaces, S1 = (X, Y), S2 = (Y, Z) and
+S3 = (Z, X), the cell grids of the volume's voxel grid; each cell keeps the latest timestamp
+that fell on it. A plane ``t = a u + b v + c`` fitted around an event's cell gives the
+constraint ``a v_u + b v_v = 1`` (Benosman et al. 2014). A time surface only sees the
+motion along its gradient (the aperture problem), and S2, S3 project the scene along X or
+Y, which collapses the texture, so for a fronto-parallel surface they mostly see ``vz``.
+The per-event system of the (up to) three constraints is therefore often rank-deficient;
+its minimum-norm solution is the event's 3-D *normal flow*. k-means over the normal flows
+gives a first partition, which a k-means on the constraints themselves then refines (see
+:func:`_refine_clusters`). The image-plane model (``dim = 2``: points (x, y, 0) in pixels)
+uses S1 alone and gives (vx, vy, 0) in px/s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from sklearn.cluster import KMeans
+
+from spatialseg.grid import VoxelGrid
+
+__all__ = ["PLANES", "InitResult", "initial_motions", "time_surfaces"]
+
+#: The axis pairs (u, v) of the time surfaces S1 = (X, Y), S2 = (Y, Z), S3 = (Z, X).
+PLANES = ((0, 1), (1, 2), (2, 0))
+
+
+@dataclass(frozen=True, eq=False)
+class InitResult:
+    """Initial motions ``thetas`` (K, 3) and the per-event flows behind them (m/s; px/s for
+    the image-plane model).
+
+    ``flows`` (M, 3) is each event's normal flow, NaN where the event was not sampled or
+    gave no valid estimate; ``n_valid`` counts the finite rows. ``fallback`` is True when
+    too few valid flows existed and ``thetas`` were spread around their mean instead.
+    """
+
+    thetas: np.ndarray
+    flows: np.ndarray
+    n_valid: int
+    fallback: bool
+
+
+def _check_points(points: np.ndarray, t: np.ndarray) -> None:
+    """Raise a one-line ValueError for empty, mis-shaped or non-finite points and times."""
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be an M x 3 array, got shape {points.shape}")
+    if t.shape != (len(points),):
+        raise ValueError(f"t must have one time per point ({len(points)}), got shape {t.shape}")
+    if not len(points):
+        raise ValueError("no points to estimate motions from; the window is empty")
+    if not (np.all(np.isfinite(points)) and np.all(np.isfinite(t))):
+        raise ValueError("points or t contain NaN or inf; drop events without depth first")
+
+
+def _check_parameters(
+    t: np.ndarray,
+    n_clusters: int,
+    radius: int,
+    min_points: int,
+    max_condition: float,
+    max_speed: float,
+    max_events: int,
+    n_init: int,
+    min_r2: float,
+) -> None:
+    """Raise a one-line ValueError for a zero time span or a parameter out of range."""
+    checks = (
+        (t.max() > t.min(), "all events share one timestamp; a motion needs a time span"),
+        (
+            int(n_clusters) == n_clusters and n_clusters >= 1,
+            f"n_clusters must be an integer >= 1, got {n_clusters}",
+        ),
+        (int(radius) == radius and radius >= 1, f"radius must be an integer >= 1, got {radius}"),
+        (
+            int(min_points) == min_points and min_points >= 3,
+            f"min_points must be an integer >= 3 (a plane has 3 unknowns), got {min_points}",
+        ),
+        (max_condition >= 1.0, f"max_condition must be >= 1, got {max_condition}"),
+        (max_speed > 0.0, f"max_speed must be > 0 m/s, got {max_speed}"),
+        (
+            int(max_events) == max_events and max_events >= 1,
+            f"max_events must be an integer >= 1, got {max_events}",
+        ),
+        (int(n_init) == n_init and n_init >= 1, f"n_init must be an integer >= 1, got {n_init}"),
+        (0.0 <= min_r2 <= 1.0, f"min_r2 must lie in [0, 1], got {min_r2}"),
+    )
+    for ok, message in checks:
+        if not ok:
+            raise ValueError(message)
+
+
+def _cells(points: np.ndarray, grid: VoxelGrid) -> np.ndarray:
+    """Integer voxel index (M, 3) of each point (nearest voxel centre); raise if outside."""
+    cells = np.rint(grid.continuous_index(points)).astype(np.int64)
+    if np.any(cells < 0) or np.any(cells >= np.asarray(grid.shape)):
+        raise ValueError("points lie outside the voxel grid; build it with grid_around(points)")
+    return cells
+
+
+def _surfaces_from_cells(
+    cells: np.ndarray, t: np.ndarray, shape: tuple[int, int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Latest time per cell on S1, S2, S3; -inf marks a cell no event fell on."""
+    surfaces = []
+    for u, v in PLANES:
+        surface = np.full((shape[u], shape[v]), -np.inf)
+        np.maximum.at(surface, (cells[:, u], cells[:, v]), t)
+        surfaces.append(surface)
+    return surfaces[0], surfaces[1], surfaces[2]
+
+
+def time_surfaces(
+    points: np.ndarray, t: np.ndarray, grid: VoxelGrid
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The time surfaces S1 (nx, ny), S2 (ny, nz), S3 (nz, nx): latest ``t`` per cell, -inf
+    where no event fell (so any time origin works, including negative ``t - t_ref``)."""
+    points = np.asarray(points, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    _check_points(points, t)
+    return _surfaces_from_cells(_cells(points, grid), t, grid.shape)
+
+
+def _window_moments(
+    surface: np.ndarray,
+    cu: np.ndarray,
+    cv: np.ndarray,
+    cell_size: tuple[float, float],
+    radius: int,
+) -> tuple[np.ndarray, ...]:
+    """Hit count and centred second moments (uu, vv, uv, ut, vt, tt) of the hit cells in the
+    (2r+1)^2 window around each cell, u, v in metres, t relative to the centre cell's time.
+
+    One window offset at a time, so memory stays O(E) for any radius; times relative to
+    the event's own cell keep the sums exact for large absolute times.
+    """
+    nu, nv = surface.shape
+    t0 = surface[cu, cv]
+    raw = np.zeros((10, len(cu)))  # n, u, v, t, uu, vv, uv, ut, vt, tt
+    for i in range(-radius, radius + 1):
+        for j in range(-radius, radius + 1):
+            iu, iv = cu + i, cv + j
+            inside = (iu >= 0) & (iu < nu) & (iv >= 0) & (iv < nv)
+            value = surface[np.clip(iu, 0, nu - 1), np.clip(iv, 0, nv - 1)]
+            hit = inside & np.isfinite(value)
+            dt = np.where(hit, value - t0, 0.0)
+            u, v = i * cell_size[0], j * cell_size[1]
+            terms = (1.0, u, v, dt, u * u, v * v, u * v, u * dt, v * dt, dt * dt)
+            raw += hit * np.stack(np.broadcast_arrays(*terms))
+    n, su, sv, st, suu, svv, suv, sut, svt, stt = raw
+    k = np.maximum(n, 1.0)
+    return (
+        n,
+        suu - su * su / k,
+        svv - sv * sv / k,
+        suv - su * sv / k,
+        sut - su * st / k,
+        svt - sv * st / k,
+        stt - st * st / k,
+    )
+
+
+def _plane_fits(
+    surface: np.ndarray,
+    cu: np.ndarray,
+    cv: np.ndarray,
+    cell_size: tuple[float, float],
+    *,
+    radius: int,
+    min_points: int,
+    max_condition: float,
+    min_r2: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane ``t = a u + b v + c`` around each cell: gradients (E, 2) in s/m
+    and validity (at least ``min_points`` hit cells, a cell layout with singular-value
+    ratio <= ``max_condition``, coefficient of determination R^2 >= ``min_r2``)."""
+    n, cuu, cvv, cuv, cut, cvt, ctt = _window_moments(surface, cu, cv, cell_size, radius)
+    det = cuu * cvv - cuv * cuv
+    half_trace = 0.5 * (cuu + cvv)
+    spread = np.sqrt(np.maximum(half_trace**2 - det, 0.0))
+    lam_max, lam_min = half_trace + spread, half_trace - spread
+    well_posed = (lam_min > 0) & (lam_max <= max_condition**2 * lam_min)
+    safe_det = np.where(well_posed, det, 1.0)
+    a = (cvv * cut - cuv * cvt) / safe_det
+    b = (cuu * cvt - cuv * cut) / safe_det
+    r2 = np.where(ctt > 0, (a * cut + b * cvt) / np.where(ctt > 0, ctt, 1.0), 0.0)
+    ok = (n >= min_points) & well_posed & (ctt > 0) & (r2 >= min_r2)
+    return np.column_stack((a, b)), ok
+
+
+def _constraints(
+    gradients: list[np.ndarray], valid: list[np.ndarray], max_speed: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-event constraint rows A (E, 3, 3) and right-hand sides b (E, 3), in m/s, from the
+    gradients of the first ``len(gradients)`` surfaces.
+
+    Row k of an event is ``n . theta = s`` with ``n = g/|g|`` and ``s = 1/|g|`` for the
+    gradient g of surface k (the constraint ``g . theta = 1`` divided by ``|g|``), so every
+    row weighs equally in m/s. Missing or rejected surfaces give zero rows; so does a
+    gradient flatter than ``1/max_speed``, which only says the normal speed exceeds
+    ``max_speed``.
+    """
+    e = len(gradients[0])
+    a = np.zeros((e, 3, 3))
+    b = np.zeros((e, 3))
+    for k, (g, ok) in enumerate(zip(gradients, valid, strict=True)):
+        u, v = PLANES[k]
+        norm = np.hypot(g[:, 0], g[:, 1])
+        use = ok & np.isfinite(norm) & (norm * max_speed >= 1.0)
+        a[use, k, u] = g[use, 0] / norm[use]
+        a[use, k, v] = g[use, 1] / norm[use]
+        b[use, k] = 1.0 / norm[use]
+    return a, b
+
+
+def _normal_flows(
+    a: np.ndarray, b: np.ndarray, *, max_condition: float, max_speed: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum-norm solution (E, 3) of each event's constraints and its validity.
+
+    Decision: directions with a singular value below ``s_max / max_condition`` are treated
+    as unobserved (truncated pseudo-inverse) instead of discarding the event, because the
+    system is rank-deficient by construction for most events (S2 and S3 both see mainly
+    ``vz``). Valid: at least one constraint and a finite speed <= ``max_speed``.
+    """
+    flows = np.einsum("eij,ej->ei", np.linalg.pinv(a, rcond=1.0 / max_condition), b)
+    speed = np.linalg.norm(flows, axis=1)
+    ok = np.any(a != 0, axis=(1, 2)) & np.isfinite(speed) & (speed <= max_speed)
+    return flows, ok
+
+
+def _pooled_velocity(a: np.ndarray, b: np.ndarray, max_condition: float) -> np.ndarray:
+    """The velocity that best satisfies all given constraint rows (least squares, m/s)."""
+    rows, rhs = a.reshape(-1, 3), b.reshape(-1)
+    return np.linalg.lstsq(rows, rhs, rcond=1.0 / max_condition)[0]
+
+
+def _constraint_cost(a: np.ndarray, b: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Squared constraint residual (E, K) of each event under each candidate velocity."""
+    return ((np.einsum("eij,kj->eki", a, centres) - b[:, None, :]) ** 2).sum(axis=2)
+
+
+def _refine_clusters(
+    a: np.ndarray, b: np.ndarray, labels: np.ndarray, centres: np.ndarray, max_condition: float
+) -> np.ndarray:
+    """Lloyd iterations of k-means on the constraints, from a k-means partition of the flows.
+
+    Decision: the mean of normal flows shrinks every direction an event does not observe
+    towards zero (an event seeing only ``vz`` reports ``vx = vy = 0``), which biases the plain
+    k-means centres low and lets such events dominate the partition. Here an event joins
+    the centre that best satisfies its own constraints, and a centre is the least-squares
+    velocity of its members' constraints (pooling normal flows resolves the aperture
+    problem). Both steps lower the total constraint residual; stop when it stops falling.
+    Decision: a cluster that empties keeps its previous centre.
+    """
+    centres = centres.copy()
+    best = np.inf
+    while True:
+        for j in range(len(centres)):
+            members = labels == j
+            if members.any():
+                centres[j] = _pooled_velocity(a[members], b[members], max_condition)
+        cost = _constraint_cost(a, b, centres)
+        new_labels = cost.argmin(axis=1)
+        total = float(cost[np.arange(len(cost)), new_labels].sum())
+        if total >= best:
+            return centres
+        best, labels = total, new_labels
+
+
+def _spread(centre: np.ndarray, radius: float, k: int, dim: int) -> np.ndarray:
+    """``k`` velocities spread evenly around ``centre``: on a circle in (vx, vy) for
+    ``dim = 2``, on a sphere (Fibonacci lattice) for 3; ``k = 1`` gives the centre itself."""
+    if k == 1:
+        return centre[None, :].copy()
+    i = np.arange(k) + 0.5
+    if dim == 2:
+        phi = 2.0 * np.pi * i / k
+        return centre + radius * np.column_stack((np.cos(phi), np.sin(phi), np.zeros(k)))
+    z = 1.0 - 2.0 * i / k
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    r = np.sqrt(1.0 - z * z)
+    return centre + radius * np.column_stack((r * np.cos(phi), r * np.sin(phi), z))
+
+
+def _sample_constraints(
+    cells: np.ndarray,
+    t: np.ndarray,
+    grid: VoxelGrid,
+    sample: np.ndarray,
+    *,
+    dim: int,
+    radius: int,
+    min_points: int,
+    max_condition: float,
+    max_speed: float,
+    min_r2: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Constraint rows A (E, 3, 3) and b (E, 3) of the sampled events from the time surfaces
+    (S1 only for ``dim = 2``: image-plane points have no depth axis to build S2, S3 on)."""
+    surfaces = _surfaces_from_cells(cells, t, grid.shape)
+    gradients, valid = [], []
+    for surface, (u, v) in zip(surfaces[: 1 if dim == 2 else 3], PLANES, strict=False):
+        g, ok = _plane_fits(
+            surface,
+            cells[sample, u],
+            cells[sample, v],
+            (grid.voxel_size[u], grid.voxel_size[v]),
+            radius=radius,
+            min_points=min_points,
+            max_condition=max_condition,
+            min_r2=min_r2,
+        )
+        gradients.append(g)
+        valid.append(ok)
+    return _constraints(gradients, valid, max_speed)
+
+
+def initial_motions(
+    points: np.ndarray,
+    t: np.ndarray,
+    grid: VoxelGrid,
+    n_clusters: int,
+    *,
+    seed: int,
+    dim: int,
+    radius: int,
+    min_points: int,
+    max_condition: float,
+    max_speed: float,
+    max_events: int,
+    n_init: int,
+    min_r2: float,
+) -> InitResult:
+    """Initial velocities of ``n_clusters`` motions from time surfaces + k-means.
+
+    ``points`` (M, 3) and ``t`` (M,) in the model's units (metres and seconds; ``dim = 2``:
+    image-plane points (x, y, 0) in pixels, velocities (vx, vy, 0) in px/s), any time
+    origin (absolute ``t`` or ``t - t_ref``: only differences matter). At most
+    ``max_events`` events, drawn with ``seed``, get a normal flow; k-means (scikit-learn,
+    ``n_init`` starts, ``random_state=seed``) partitions the valid flows and
+    :func:`_refine_clusters` turns the partition into velocities. With fewer valid
+    (distinct) flows than ``n_clusters`` the velocities are spread around the mean valid
+    flow (zero if none) at one voxel per window duration, the smallest velocity difference
+    the volume resolves, and ``fallback`` is True.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    _check_points(points, t)
+    _check_parameters(
+        t, n_clusters, radius, min_points, max_condition, max_speed, max_events, n_init, min_r2
+    )
+    if dim not in (2, 3):
+        raise ValueError(f"dim must be 2 (image plane) or 3 (space), got {dim}")
+    cells = _cells(points, grid)
+    m = len(points)
+    sample = np.sort(np.random.default_rng(seed).choice(m, min(m, int(max_events)), False))
+    a, b = _sample_constraints(
+        cells,
+        t,
+        grid,
+        sample,
+        dim=dim,
+        radius=int(radius),
+        min_points=min_points,
+        max_condition=max_condition,
+        max_speed=max_speed,
+        min_r2=min_r2,
+    )
+    sample_flows, ok = _normal_flows(a, b, max_condition=max_condition, max_speed=max_speed)
+    flows = np.full((m, 3), np.nan)
+    flows[sample[ok]] = sample_flows[ok]
+    good = sample_flows[ok]
+    if len(np.unique(good, axis=0)) < n_clusters:
+        centre = good.mean(axis=0) if len(good) else np.zeros(3)
+        step = float(grid.voxel_size[:dim].min() / (t.max() - t.min()))
+        return InitResult(_spread(centre, step, int(n_clusters), dim), flows, len(good), True)
+    kmeans = KMeans(int(n_clusters), n_init=int(n_init), random_state=seed).fit(good)
+    thetas = _refine_clusters(a[ok], b[ok], kmeans.labels_, kmeans.cluster_centers_, max_condition)
+    return InitResult(thetas, flows, len(good), False)

@@ -1,0 +1,176 @@
+"""EDPA: per-event depth, unknown-depth policies, back-projection, voxel size."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spatialseg.edpa import back_project, event_depth, fill_depth, lift, voxel_size
+from spatialseg.events import EventStream
+from spatialseg.grid import grid_around
+from spatialseg.recording import Camera, DepthMap, Recording
+
+NAN = np.nan
+CAM = Camera(fx=100.0, fy=50.0, cx=1.5, cy=1.0, width=4, height=3)
+# 3 x 4 sensor; unknown depth: NaN, 0 or negative.
+Z1 = np.array([[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 3.0, NAN], [2.0, NAN, 7.0, 8.0]])
+Z2 = np.array([[3.0, 4.0, 1.0, 6.0], [5.0, 2.0, 2.0, 5.0], [0.0, -1.0, 9.0, 8.0]])
+T1, T2 = 10.0, 12.0
+# (x, y, t, hand-computed depth)
+CASES = [
+    (0, 0, 9.0, 1.0),  # before T1: clamped to Z1
+    (0, 0, 10.0, 1.0),  # at T1: Z1 (the printed Eq. 1 gives 0)
+    (1, 0, 11.0, 3.0),  # halfway between 2 and 4
+    (2, 1, 11.5, 2.25),  # 3 + 0.75 * (2 - 3): depth decreasing
+    (3, 1, 11.5, 5.0),  # Z1 unknown (NaN): Z2
+    (0, 2, 11.5, 2.0),  # Z2 unknown (0): Z1
+    (1, 2, 11.5, NAN),  # unknown in both (NaN, -1)
+    (2, 0, 12.0, 1.0),  # at T2: Z2
+    (3, 2, 13.0, 8.0),  # after T2: clamped to Z2
+]
+
+
+def _events(cases: list[tuple[int, int, float, float]]) -> EventStream:
+    x, y, t, _ = zip(*cases, strict=True)
+    return EventStream(np.array(x), np.array(y), np.array(t), np.ones(len(x)), 4, 3)
+
+
+def _expected(cases: list[tuple[int, int, float, float]]) -> np.ndarray:
+    return np.array([c[3] for c in cases])
+
+
+def _window(cases, z1=Z1, z2=Z2) -> Recording:
+    maps = (DepthMap(T1, z1), DepthMap(T2, z2))
+    return Recording(_events(cases), CAM, maps)
+
+
+def test_event_depth_matches_hand_computed_interpolation():
+    z = event_depth(_events(CASES), DepthMap(T1, Z1), DepthMap(T2, Z2))
+    np.testing.assert_allclose(z, _expected(CASES), equal_nan=True)
+
+
+def test_printed_equation_1_would_fail_this_test():
+    """The misprinted Eq. 1, (t - T1)/(T2 - T1) |Z2 - Z1|, disagrees with the hand values."""
+    ev = _events(CASES[1:4])
+    s = (ev.t - T1) / (T2 - T1)
+    misread = s * np.abs(Z2[ev.y, ev.x] - Z1[ev.y, ev.x])
+    assert not np.allclose(misread, _expected(CASES[1:4]))
+    z = event_depth(ev, DepthMap(T1, Z1), DepthMap(T2, Z2))
+    assert not np.allclose(z, misread)
+
+
+def test_event_depth_equal_map_times_uses_first_map_then_second():
+    ev = _events([(0, 0, 10.0, 0), (3, 1, 10.0, 0), (1, 2, 10.0, 0)])
+    z = event_depth(ev, DepthMap(T1, Z1), DepthMap(T1, Z2))
+    np.testing.assert_allclose(z, [1.0, 5.0, NAN], equal_nan=True)
+
+
+def test_event_depth_rejects_swapped_maps_and_wrong_shape():
+    ev = _events(CASES[:1])
+    with pytest.raises(ValueError, match="pass the earlier map first"):
+        event_depth(ev, DepthMap(T2, Z2), DepthMap(T1, Z1))
+    with pytest.raises(ValueError, match="does not match the events' sensor"):
+        event_depth(ev, DepthMap(T1, np.ones((4, 4))), DepthMap(T2, Z2))
+
+
+def test_back_project_hand_values_and_round_trip_through_projection():
+    xyz = back_project(np.array([3.5]), np.array([0.0]), np.array([2.0]), CAM)
+    np.testing.assert_allclose(xyz, [[(3.5 - 1.5) * 2.0 / 100.0, (0.0 - 1.0) * 2.0 / 50.0, 2.0]])
+    rng = np.random.default_rng(0)
+    pts = np.column_stack((rng.uniform(-1, 1, 50), rng.uniform(-1, 1, 50), rng.uniform(0.5, 5, 50)))
+    u = CAM.fx * pts[:, 0] / pts[:, 2] + CAM.cx
+    v = CAM.fy * pts[:, 1] / pts[:, 2] + CAM.cy
+    np.testing.assert_allclose(back_project(u, v, pts[:, 2], CAM), pts)
+
+
+def test_back_project_rejects_nan_and_mismatched_lengths():
+    with pytest.raises(ValueError, match="NaN or inf"):
+        back_project(np.zeros(1), np.zeros(1), np.array([NAN]), CAM)
+    with pytest.raises(ValueError, match="equal length"):
+        back_project(np.zeros(2), np.zeros(1), np.ones(1), CAM)
+
+
+def test_fill_depth_takes_median_of_known_neighbours():
+    d = np.array([[1.0, NAN, 3.0, 4.0], [NAN, NAN, 0.0, 8.0], [2.0, 6.0, -1.0, NAN]])
+    # radius 1 around (x, y) = (1, 1): known 1, 3, 2, 6 -> 2.5; corner (0, 0): 1; (3, 2): 8
+    out = fill_depth(d, np.array([1, 0, 3]), np.array([1, 0, 2]), radius=1)
+    np.testing.assert_allclose(out, [2.5, 1.0, 8.0])
+    hole = np.full((3, 4), NAN)
+    assert np.isnan(fill_depth(hole, np.array([1]), np.array([1]), radius=2)).all()
+    np.testing.assert_allclose(fill_depth(d, np.array([1]), np.array([1]), radius=0), [NAN])
+
+
+def test_lift_drop_policy_excludes_events_without_depth():
+    lifted = lift(_window(CASES), unknown_depth="drop", fill_radius=1)
+    expected = _expected(CASES)
+    assert lifted.valid.tolist() == np.isfinite(expected).tolist()
+    np.testing.assert_allclose(lifted.depth, expected, equal_nan=True)
+    ev = _events(CASES)
+    keep = lifted.valid
+    np.testing.assert_allclose(
+        lifted.points, back_project(ev.x[keep], ev.y[keep], expected[keep], CAM)
+    )
+    np.testing.assert_allclose(lifted.t, ev.t[keep])
+    assert np.all(np.isfinite(lifted.points))
+
+
+def test_lift_fill_policy_uses_neighbourhood_median_of_each_map():
+    # event at (1, 2), t = 11.5, s = 0.75; radius 1 known neighbours:
+    # Z1: 5, 6, 3, 2, 7 -> median 5; Z2: 5, 2, 2, 9 -> median 3.5; 5 + 0.75 (3.5 - 5) = 3.875
+    lifted = lift(_window(CASES), unknown_depth="fill", fill_radius=1)
+    assert lifted.valid.all()
+    assert lifted.depth[6] == pytest.approx(3.875)
+    assert lifted.points.shape == (len(CASES), 3)
+
+
+def test_lift_fill_with_radius_zero_keeps_dropping():
+    lifted = lift(_window(CASES), unknown_depth="fill", fill_radius=0)
+    assert not lifted.valid[6] and lifted.valid.sum() == len(CASES) - 1
+
+
+def test_lift_errors_are_clear():
+    holes = np.full((3, 4), NAN)
+    with pytest.raises(ValueError, match="all events in the window have unknown depth"):
+        lift(_window(CASES[6:7]), unknown_depth="drop", fill_radius=1)
+    with pytest.raises(ValueError, match="all events in the window have unknown depth"):
+        lift(_window(CASES, holes, holes), unknown_depth="fill", fill_radius=2)
+    with pytest.raises(ValueError, match="the window has no events"):
+        lift(_window(CASES).select(slice(0, 0)), unknown_depth="drop", fill_radius=1)
+    with pytest.raises(ValueError, match="unknown_depth must be one of"):
+        lift(_window(CASES), unknown_depth="zero", fill_radius=1)
+    one_map = Recording(_events(CASES), CAM, (DepthMap(T1, Z1),))
+    with pytest.raises(ValueError, match="exactly 2 depth maps"):
+        lift(one_map, unknown_depth="drop", fill_radius=1)
+
+
+def test_voxel_size_rule():
+    pts = np.array([[0.0, 0.0, 1.5], [0.1, 0.2, 2.0], [0.3, 0.1, 2.5]])
+    # median Z 2.0: X = 2 * 2.0 / 100, Y = 2 * 2.0 / 50; Z = (2.5 - 1.5) / 10
+    np.testing.assert_allclose(voxel_size(pts, CAM, xy_scale=2.0, z_bins=10), [0.04, 0.08, 0.1])
+    # a thin depth range is floored at the smaller lateral size
+    np.testing.assert_allclose(voxel_size(pts, CAM, xy_scale=2.0, z_bins=1000), [0.04, 0.08, 0.04])
+    flat = pts.copy()
+    flat[:, 2] = 2.0
+    np.testing.assert_allclose(voxel_size(flat, CAM, xy_scale=1.0, z_bins=10), [0.02, 0.04, 0.02])
+
+
+def test_voxel_size_rejects_bad_input():
+    pts = np.array([[0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match="NaN"):
+        voxel_size(np.array([[0.0, NAN, 1.0]]), CAM, xy_scale=1.0, z_bins=10)
+    with pytest.raises(ValueError, match="non-empty"):
+        voxel_size(np.zeros((0, 3)), CAM, xy_scale=1.0, z_bins=10)
+    with pytest.raises(ValueError, match="positive depth"):
+        voxel_size(np.array([[0.0, 0.0, -1.0]]), CAM, xy_scale=1.0, z_bins=10)
+    with pytest.raises(ValueError, match="xy_scale"):
+        voxel_size(pts, CAM, xy_scale=0.0, z_bins=10)
+    with pytest.raises(ValueError, match="z_bins"):
+        voxel_size(pts, CAM, xy_scale=1.0, z_bins=0)
+
+
+def test_lifted_points_feed_the_grid():
+    lifted = lift(_window(CASES), unknown_depth="drop", fill_radius=1)
+    size = voxel_size(lifted.points, CAM, xy_scale=1.0, z_bins=8)
+    grid = grid_around(lifted.points, size, margin=0.1, max_voxels=10**6)
+    c = grid.continuous_index(lifted.points)
+    assert np.all(c >= 0) and np.all(c <= np.array(grid.shape) - 1)
