@@ -1,0 +1,468 @@
+"""The volume of warped events (VWE): fused numba kernels and the evaluator the optimisers call.
+
+Event ``k`` (point ``x_k``, time offset ``dt_k = t_k - t_ref``, weight ``w_k = p_kj``) is
+warped to ``x'_k = x_k - dt_k theta`` and votes ``w_k prod_a (1 - |c_a - corner_a|)`` into the
+8 voxels around its continuous voxel coordinate ``c = (x'_k - origin) / voxel_size``
+(:class:`~spatialseg.grid.VoxelGrid`). Corners outside the grid are dropped one by one, so the
+objective stays continuous when an event crosses the border. On an axis with a single voxel
+(the planar model, ``nz == 1``) the weight is the tent ``1 - |c|`` peaked on the layer; there
+the derivative on the peak is taken as 0 (the symmetric derivative), so ``d/dtheta_z = 0``
+for points on the layer.
+
+Design (details in ``docs/volume.md``):
+
+* The volume lives in a buffer with a one-voxel zero halo, so out-of-grid corners read 0
+  without a test; votes for them are masked to 0. The buffer is all zero between calls: a
+  call votes into it, reads it and clears it again (by revisiting the events' cells when
+  that is cheaper than a memset), so a small window costs ``O(N)``, not ``O(|Omega|)``.
+* For a :class:`~spatialseg.objectives.MomentObjective` without blur nothing scans the
+  grid: the voting pass sums the in-grid mass (``sum V``), and the gather pass gives
+  ``sum V^2 = sum_k w_k V(x'_k)`` together with the two parts of the gradient, for
+  ``dO/dV = slope V + offset``. Other objectives (or a blur) materialise the blurred volume
+  and ``G`` in reused buffers and gather ``G``.
+* The voting pass caches each interior event's cell and fractions; the gather pass reads
+  them instead of warping again. Events are stored sorted by their unwarped voxel, so the
+  passes walk the volume almost sequentially; results come back in the caller's order.
+* Coordinates are computed in float64; points, weights, the cache and the volume are stored
+  in ``dtype`` (float32 halves their memory, float64 is the more accurate and, on the
+  benchmark machine, the faster).
+* Not thread-safe: one evaluator per thread (``batch_value`` parallelises internally).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import numba
+import numpy as np
+import numpy.typing as npt
+from numba import njit, prange
+
+from spatialseg.grid import VoxelGrid
+from spatialseg.objectives import MomentObjective, Objective, make_objective
+
+__all__ = ["VolumeObjective"]
+
+#: Storage dtypes the kernels are compiled for.
+DTYPES = (np.float32, np.float64)
+
+#: LLVM may fuse multiply-adds (FMA); no other reassociation, so results are reproducible.
+_FASTMATH = {"contract"}
+
+
+@njit(cache=True, inline="always")
+def _layout(padded: np.ndarray):
+    """Flat view, grid shape and strides (x, y) of a volume padded by one zero voxel per side."""
+    px, py, pz = padded.shape
+    return padded.reshape(padded.size), (px - 2, py - 2, pz - 2), py * pz, pz
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _axis(c: float, n: int):
+    """One axis of a warped event: padded lower-corner index, fraction, masks, derivative scale.
+
+    The masks are 1 for a corner inside the grid, 0 for one in the halo (dropped). The scale
+    is 0 on the peak of a one-voxel axis (the symmetric derivative there), else 1.
+    """
+    lower = np.floor(c)
+    frac = c - lower
+    i = int(lower) + 1
+    return (
+        i,
+        frac,
+        1.0 if i >= 1 else 0.0,
+        1.0 if i < n else 0.0,
+        0.0 if (n == 1 and frac == 0.0) else 1.0,
+    )
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy):
+    """Warp event ``k``: whether it touches the grid, the flat index of its cell, and its axes."""
+    t = dt[k]
+    cx = (points[k, 0] - t * theta[0] - origin[0]) * inv_size[0]
+    cy = (points[k, 1] - t * theta[1] - origin[1]) * inv_size[1]
+    cz = (points[k, 2] - t * theta[2] - origin[2]) * inv_size[2]
+    nx, ny, nz = shape
+    inside = (cx > -1.0) & (cx < nx) & (cy > -1.0) & (cy < ny) & (cz > -1.0) & (cz < nz)
+    if not inside:
+        cx = cy = cz = 0.0
+    ax, ay, az = _axis(cx, nx), _axis(cy, ny), _axis(cz, nz)
+    return inside, ax[0] * sx + ay[0] * sy + az[0], ax[1:], ay[1:], az[1:]
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _splat(flat, b, sx, sy, w, ax, ay, az) -> float:
+    """Add the 8 masked trilinear votes of weight ``w`` at cell ``b``; return the mass added."""
+    cast = flat.dtype.type  # add in the volume's dtype (no float32 -> float64 round trip)
+    fx, mx0, mx1, _ = ax
+    fy, my0, my1, _ = ay
+    fz, mz0, mz1, _ = az
+    wx0, wx1 = w * (1.0 - fx) * mx0, w * fx * mx1
+    wy0, wy1 = (1.0 - fy) * my0, fy * my1
+    wz0, wz1 = (1.0 - fz) * mz0, fz * mz1
+    w00, w01, w10, w11 = wy0 * wz0, wy0 * wz1, wy1 * wz0, wy1 * wz1
+    flat[b] += cast(wx0 * w00)
+    flat[b + 1] += cast(wx0 * w01)
+    flat[b + sy] += cast(wx0 * w10)
+    flat[b + sy + 1] += cast(wx0 * w11)
+    flat[b + sx] += cast(wx1 * w00)
+    flat[b + sx + 1] += cast(wx1 * w01)
+    flat[b + sx + sy] += cast(wx1 * w10)
+    flat[b + sx + sy + 1] += cast(wx1 * w11)
+    return (wx0 + wx1) * (wy0 + wy1) * (wz0 + wz1)
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _interpolate(flat, b, sx, sy, fx, fy, fz):
+    """Trilinear value in cell ``b`` at fractions ``(fx, fy, fz)`` and its d/dc along x, y, z."""
+    g000, g001 = np.float64(flat[b]), np.float64(flat[b + 1])
+    g010, g011 = np.float64(flat[b + sy]), np.float64(flat[b + sy + 1])
+    g100, g101 = np.float64(flat[b + sx]), np.float64(flat[b + sx + 1])
+    g110, g111 = np.float64(flat[b + sx + sy]), np.float64(flat[b + sx + sy + 1])
+    # contract z (value h, slope e), then y, then x
+    e00, e01, e10, e11 = g001 - g000, g011 - g010, g101 - g100, g111 - g110
+    h00, h01, h10, h11 = g000 + fz * e00, g010 + fz * e01, g100 + fz * e10, g110 + fz * e11
+    hy0, hy1 = h01 - h00, h11 - h10
+    h0, h1 = h00 + fy * hy0, h10 + fy * hy1
+    ez0, ez1 = e00 + fy * (e01 - e00), e10 + fy * (e11 - e10)
+    return h0 + fx * (h1 - h0), h1 - h0, hy0 + fx * (hy1 - hy0), ez0 + fx * (ez1 - ez0)
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _scatter(points, dt, weights, theta, origin, inv_size, padded, cells, fracs) -> float:
+    """Vote every event into ``padded`` (zero on entry); return the in-grid mass ``sum V``.
+
+    Caches each voting event's cell and fractions in ``cells``/``fracs`` for the passes that
+    follow at the same theta; ``cells[k] = -1`` marks an event to skip (weight 0) or, when its
+    cell touches the border, to re-locate.
+    """
+    flat, shape, sx, sy = _layout(padded)
+    mass = 0.0
+    for k in range(dt.size):
+        w = np.float64(weights[k])
+        cached = -1
+        if w != 0.0:
+            inside, b, ax, ay, az = _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy)
+            if inside:
+                mass += _splat(flat, b, sx, sy, w, ax, ay, az)
+                if ax[1] * ax[2] * ay[1] * ay[2] * az[1] * az[2] == 1.0:
+                    cached = b
+                    fracs[k, 0], fracs[k, 1], fracs[k, 2] = ax[0], ay[0], az[0]
+        cells[k] = cached
+    return mass
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _clear(points, dt, weights, theta, origin, inv_size, padded, cells) -> None:
+    """Zero ``padded`` after :func:`_scatter`: by the events' cells when cheaper than a memset."""
+    flat, shape, sx, sy = _layout(padded)
+    if 8 * dt.size >= flat.size:
+        flat[:] = 0
+        return
+    for k in range(dt.size):
+        b = cells[k]
+        if b < 0:
+            if weights[k] == 0:
+                continue
+            inside, b, _, _, _ = _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy)
+            if not inside:
+                continue
+        for corner in (b, b + 1, b + sy, b + sy + 1):
+            flat[corner] = 0
+            flat[corner + sx] = 0
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _weighted_sample_sum(
+    points, dt, weights, theta, origin, inv_size, padded, cells, fracs
+) -> float:
+    """``sum_k w_k V(x'_k)`` after :func:`_scatter`: it equals ``sum V^2``, without a grid pass."""
+    flat, shape, sx, sy = _layout(padded)
+    total = 0.0
+    for k in range(dt.size):
+        w = np.float64(weights[k])
+        b = cells[k]
+        if b >= 0:  # cached cell; kept a separate branch, or LLVM warps every event
+            value = _interpolate(flat, b, sx, sy, fracs[k, 0], fracs[k, 1], fracs[k, 2])[0]
+        else:
+            if w == 0.0:
+                continue
+            inside, b, ax, ay, az = _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy)
+            if not inside:
+                continue
+            value = _interpolate(flat, b, sx, sy, ax[0], ay[0], az[0])[0]
+        total += w * value
+    return total
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _gather_grad(points, dt, weights, theta, origin, inv_size, padded, cells, fracs):
+    """One gather pass over ``G`` (padded, zero halo) after :func:`_scatter`: ``(S, A, B)``.
+
+    ``S = sum_k w_k G(x'_k)``, ``A_a = sum_k w_k dt_k dG(x'_k)/dc_a`` and ``B_a`` the same for
+    the in-grid mass of each event (non-zero only at the border), so that for
+    ``dO/dV = slope V + offset`` the gradient is ``-(slope A + offset B) / voxel_size``.
+    """
+    flat, shape, sx, sy = _layout(padded)
+    s = ax_ = ay_ = az_ = bx_ = by_ = bz_ = 0.0
+    for k in range(dt.size):
+        w = np.float64(weights[k])
+        b = cells[k]
+        if b >= 0:  # interior cell: all corners in the grid, mass constant
+            value, dx, dy, dz = _interpolate(flat, b, sx, sy, fracs[k, 0], fracs[k, 1], fracs[k, 2])
+        else:
+            if w == 0.0:
+                continue
+            inside, b, ax, ay, az = _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy)
+            if not inside:
+                continue
+            (fx, mx0, mx1, kx), (fy, my0, my1, ky), (fz, mz0, mz1, kz) = ax, ay, az
+            value, dx, dy, dz = _interpolate(flat, b, sx, sy, fx, fy, fz)
+            dx, dy, dz = kx * dx, ky * dy, kz * dz
+            ex = (1.0 - fx) * mx0 + fx * mx1
+            ey = (1.0 - fy) * my0 + fy * my1
+            ez = (1.0 - fz) * mz0 + fz * mz1
+            wdt = w * dt[k]
+            bx_ += wdt * kx * (mx1 - mx0) * ey * ez
+            by_ += wdt * ky * (my1 - my0) * ex * ez
+            bz_ += wdt * kz * (mz1 - mz0) * ex * ey
+        s += w * value
+        wdt = w * dt[k]
+        ax_ += wdt * dx
+        ay_ += wdt * dy
+        az_ += wdt * dz
+    return s, np.array([ax_, ay_, az_]), np.array([bx_, by_, bz_])
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _sample(points, dt, theta, origin, inv_size, padded, cells, fracs, out) -> None:
+    """``out[k]``: the padded volume interpolated trilinearly at event ``k``'s warped position."""
+    flat, shape, sx, sy = _layout(padded)
+    for k in range(dt.size):
+        b = cells[k]
+        if b >= 0:
+            out[k] = _interpolate(flat, b, sx, sy, fracs[k, 0], fracs[k, 1], fracs[k, 2])[0]
+        else:
+            inside, b, ax, ay, az = _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy)
+            out[k] = _interpolate(flat, b, sx, sy, ax[0], ay[0], az[0])[0] if inside else 0.0
+
+
+@njit(cache=True, parallel=True)
+def _batch_moments(points, dt, weights, thetas, origin, inv_size, padded, cells, fracs, out):
+    """``out[i] = (sum V, sum V^2)`` at each ``thetas[i]``; one workspace per parallel chunk."""
+    n = thetas.shape[0]
+    chunks = padded.shape[0]
+    for c in prange(chunks):
+        for i in range(c, n, chunks):
+            args = (points, dt, weights, thetas[i], origin, inv_size, padded[c])
+            out[i, 0] = _scatter(*args, cells[c], fracs[c])
+            out[i, 1] = _weighted_sample_sum(*args, cells[c], fracs[c])
+            _clear(*args, cells[c])
+
+
+def _finite_array(
+    name: str, value: object, shape: tuple[int | None, ...], dtype, hint: str = ""
+) -> np.ndarray:
+    """``value`` as an array of ``dtype`` with ``shape`` (None: any length), all finite."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a numeric array: {exc}") from None
+    if arr.ndim != len(shape) or any(
+        s is not None and a != s for a, s in zip(arr.shape, shape, strict=True)
+    ):
+        want = " x ".join("N" if s is None else str(s) for s in shape)
+        raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        first = np.unravel_index(int(np.flatnonzero(bad)[0]), arr.shape)
+        raise ValueError(
+            f"{name} has {int(bad.sum())} NaN/inf values (first at index "
+            f"{tuple(map(int, first))}){hint}"
+        )
+    return arr.astype(dtype, copy=False)
+
+
+class VolumeObjective:
+    """The objective ``O(V(theta))`` of one cluster's VWE, its gradient, and P-step sampling.
+
+    ``points`` (N x 3) and ``dt`` (N) are the events' 3-D points and ``t_k - t_ref``;
+    ``weights`` (N, default 1) their memberships ``p_kj``; ``objective`` an
+    :class:`~spatialseg.objectives.Objective` or a registered name; ``dtype`` the storage
+    type of points and volumes (float32 or float64). Inputs are validated here, once.
+    """
+
+    def __init__(
+        self,
+        points: np.ndarray,
+        dt: np.ndarray,
+        grid: VoxelGrid,
+        objective: Objective | str,
+        weights: np.ndarray | None = None,
+        dtype: npt.DTypeLike = np.float64,
+    ) -> None:
+        if not isinstance(grid, VoxelGrid):
+            raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
+        if isinstance(objective, str):
+            objective = make_objective(objective)
+        if not isinstance(objective, Objective):
+            raise ValueError(f"objective must be an Objective or a name, got {objective!r}")
+        if np.dtype(dtype) not in [np.dtype(d) for d in DTYPES]:
+            raise ValueError(f"dtype must be float32 or float64, got {np.dtype(dtype)}")
+        hint = "; drop events without depth before building the volume"
+        pts = _finite_array("points", points, (None, 3), np.float64, hint)
+        times = _finite_array("dt", dt, (pts.shape[0],), np.float64, hint)
+        self.grid = grid
+        self.objective = objective
+        self.dtype = np.dtype(dtype)
+        self._order = self._locality_order(pts, grid)
+        self._points = np.ascontiguousarray(pts[self._order], dtype=self.dtype)
+        self._dt = np.ascontiguousarray(times[self._order], dtype=self.dtype)
+        self._weights = np.ones(len(self._dt), dtype=self.dtype)
+        self._origin = grid.origin.copy()
+        self._inv_size = 1.0 / grid.voxel_size
+        self._padded, self._cells, self._fracs = self._workspace()
+        self._fused = isinstance(objective, MomentObjective) and not objective.smooths
+        self._scratch: tuple[np.ndarray, np.ndarray] | None = None
+        self._batch: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        if weights is not None:
+            self.set_weights(weights)
+
+    @staticmethod
+    def _locality_order(points: np.ndarray, grid: VoxelGrid) -> np.ndarray:
+        """Event order by nearest unwarped voxel (C order), so the kernels walk V sequentially."""
+        if not len(points):
+            return np.zeros(0, dtype=np.intp)
+        shape = np.array(grid.shape)
+        nearest = np.clip(np.rint(grid.continuous_index(points)), 0, shape - 1).astype(np.intp)
+        return np.argsort(np.ravel_multi_index(nearest.T, grid.shape), kind="stable")
+
+    def _zero_padded(self, *count: int) -> np.ndarray:
+        """A zero volume with a one-voxel halo per side (``count`` of them stacked, if given)."""
+        return np.zeros((*count, *(n + 2 for n in self.grid.shape)), dtype=self.dtype)
+
+    def _workspace(self, *count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A zero padded volume and the per-event cell cache (``count`` of each, if given)."""
+        cells = np.empty((*count, self.n_events), dtype=np.int64)
+        fracs = np.empty((*count, self.n_events, 3), dtype=self.dtype)
+        return self._zero_padded(*count), cells, fracs
+
+    @staticmethod
+    def _interior(padded: np.ndarray) -> np.ndarray:
+        """The grid part of a padded volume (a view)."""
+        return padded[1:-1, 1:-1, 1:-1]
+
+    @property
+    def n_events(self) -> int:
+        """Number of events N."""
+        return len(self._dt)
+
+    def set_weights(self, weights: np.ndarray) -> None:
+        """Replace the memberships ``p_kj`` (N values, finite), e.g. after a P-step."""
+        w = _finite_array("weights", weights, (self.n_events,), np.float64)
+        self._weights[:] = w[self._order]
+
+    def _args(self, theta: np.ndarray) -> tuple:
+        """The kernels' event and grid arguments at ``theta`` (validated: finite 3-vector)."""
+        theta = _finite_array("theta", theta, (3,), np.float64)
+        return self._points, self._dt, self._weights, theta, self._origin, self._inv_size
+
+    def _scratch_volumes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Two padded buffers (zero halo) for the smoothed volume and ``G``, made once."""
+        if self._scratch is None:
+            self._scratch = (self._zero_padded(), self._zero_padded())
+        return self._scratch
+
+    def _smoothed(self) -> np.ndarray:
+        """The volume the objective sees (interior view): ``K V`` with a blur, else ``V``."""
+        volume = self._interior(self._padded)
+        if not self.objective.smooths:
+            return volume
+        return self.objective.smooth(volume, out=self._interior(self._scratch_volumes()[0]))
+
+    @contextmanager
+    def _voted(self, theta: np.ndarray) -> Iterator[tuple[tuple, float]]:
+        """Vote ``V(theta)`` into the buffer; yield the kernel arguments and ``sum V``; clear."""
+        args = self._args(theta)
+        try:
+            yield args, _scatter(*args, self._padded, self._cells, self._fracs)
+        finally:
+            _clear(*args, self._padded, self._cells)
+
+    def value(self, theta: np.ndarray) -> float:
+        """The objective at ``theta``."""
+        with self._voted(theta) as (args, mass):
+            if self._fused:
+                total_sq = _weighted_sample_sum(*args, self._padded, self._cells, self._fracs)
+                return self.objective.from_moments(mass, total_sq, self.grid.n_voxels)[0]
+            return float(self.objective.value(self._smoothed()))
+
+    def value_and_grad(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """The objective at ``theta`` and its analytic gradient ``dO/dtheta`` (3,)."""
+        with self._voted(theta) as (args, mass):
+            if self._fused:
+                total_sq, slopes, mass_slopes = _gather_grad(
+                    *args, self._padded, self._cells, self._fracs
+                )
+                value, slope, offset = self.objective.from_moments(
+                    mass, total_sq, self.grid.n_voxels
+                )
+                return value, -(slope * slopes + offset * mass_slopes) * self._inv_size
+            smoothed, derivative = self._smoothed(), self._scratch_volumes()[1]
+            value = self.objective.value_and_derivative(smoothed, self._interior(derivative))
+            if self.objective.smooths:
+                blurred = self._scratch_volumes()[0]
+                self.objective.smooth(self._interior(derivative), out=self._interior(blurred))
+                derivative = blurred
+            slopes = _gather_grad(*args, derivative, self._cells, self._fracs)[1]
+            return float(value), -slopes * self._inv_size
+
+    def grad(self, theta: np.ndarray) -> np.ndarray:
+        """The analytic gradient ``dO/dtheta`` (3,)."""
+        return self.value_and_grad(theta)[1]
+
+    def batch_value(self, thetas: np.ndarray) -> np.ndarray:
+        """The objective at each row of ``thetas`` (n x 3), in parallel; equal to :meth:`value`."""
+        thetas = _finite_array("thetas", thetas, (None, 3), np.float64)
+        if not self._fused:
+            return np.array([self.value(theta) for theta in thetas])
+        moments = np.zeros((len(thetas), 2))
+        chunks = min(numba.get_num_threads(), len(thetas))
+        if chunks:
+            if self._batch is None or len(self._batch[0]) < chunks:
+                self._batch = self._workspace(chunks)
+            padded, cells, fracs = (a[:chunks] for a in self._batch)
+            events = (self._points, self._dt, self._weights)
+            grid_args = (self._origin, self._inv_size, padded, cells, fracs)
+            _batch_moments(*events, thetas, *grid_args, moments)
+        n_voxels = self.grid.n_voxels
+        return np.array([self.objective.from_moments(m, q, n_voxels)[0] for m, q in moments])
+
+    def volume(self, theta: np.ndarray) -> np.ndarray:
+        """A copy of the raw VWE ``V(theta)`` (before any blur), shape ``grid.shape``."""
+        with self._voted(theta):
+            return self._interior(self._padded).copy()
+
+    def sample(self, theta: np.ndarray, volume: np.ndarray | None = None) -> np.ndarray:
+        """``volume`` (default: the raw ``V(theta)``) interpolated at each warped event (N,).
+
+        Corners outside the grid count 0. This is ``c_j(x'_kj)`` of the P-step.
+        """
+        sampled = np.empty(self.n_events)
+        if volume is None:
+            with self._voted(theta) as ((points, dt, _, theta, origin, inv_size), _):
+                grid_args = (self._padded, self._cells, self._fracs)
+                _sample(points, dt, theta, origin, inv_size, *grid_args, sampled)
+        else:
+            points, dt, _, theta, origin, inv_size = self._args(theta)
+            padded = self._scratch_volumes()[0]
+            self._interior(padded)[...] = _finite_array(
+                "volume", volume, self.grid.shape, self.dtype
+            )
+            self._cells.fill(-1)  # no cached cells: locate every event
+            _sample(points, dt, theta, origin, inv_size, padded, self._cells, self._fracs, sampled)
+        out = np.empty_like(sampled)
+        out[self._order] = sampled
+        return out

@@ -1,0 +1,240 @@
+"""The VWE evaluator against the numpy reference and finite differences; edge cases, errors."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import pytest
+
+from spatialseg import reference as ref
+from spatialseg.grid import VoxelGrid
+from spatialseg.objectives import Objective, make_objective, objective_names
+from spatialseg.volume import VolumeObjective
+
+GRID = VoxelGrid(np.array([0.0, -0.5, 1.0]), np.array([0.1, 0.1, 0.25]), (14, 11, 6))
+THETA = np.array([0.9, -0.6, 1.3])
+#: Agreement with the reference (float32 volumes round each vote: worst seen 3e-7).
+RTOL = {np.float64: 1e-9, np.float32: 1e-6}
+CASES = [(name, sigma) for name in ref.OBJECTIVES for sigma in (0.0, 0.8)]
+
+
+def _events(n: int, seed: int = 0, margin: float = 2.0):
+    """Random events over the grid, ``margin`` voxels beyond it on every side (border cases)."""
+    rng = np.random.default_rng(seed)
+    lo = GRID.origin - margin * GRID.voxel_size
+    hi = GRID.origin + (np.array(GRID.shape) - 1 + margin) * GRID.voxel_size
+    return rng.uniform(lo, hi, (n, 3)), rng.uniform(-0.05, 0.05, n), rng.uniform(0.0, 1.0, n)
+
+
+def _close(actual, expected, rtol):
+    """Relative agreement against the largest magnitude of ``expected``."""
+    expected = np.asarray(expected, np.float64)
+    scale = max(float(np.max(np.abs(expected), initial=0.0)), 1e-300)
+    assert np.max(np.abs(np.asarray(actual) - expected), initial=0.0) <= rtol * scale
+
+
+def _central_difference(f, theta, step=1e-5):
+    """Central finite-difference gradient of ``f`` at ``theta``."""
+    grad = np.zeros(3)
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = step
+        grad[a] = (f(theta + e) - f(theta - e)) / (2 * step)
+    return grad
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize(("name", "sigma"), CASES)
+def test_matches_reference(name, sigma, dtype):
+    points, dt, w = _events(800)
+    ev = VolumeObjective(points, dt, GRID, make_objective(name, blur_sigma=sigma), w, dtype)
+    # the reference sees the same (rounded) inputs
+    p, t, ww = (a.astype(dtype) for a in (points, dt, w))
+    value, grad = ev.value_and_grad(THETA)
+    ref_value, ref_grad = ref.value_and_grad(p, t, THETA, GRID, ww, name, sigma)
+    _close(value, ref_value, RTOL[dtype])
+    _close(grad, ref_grad, RTOL[dtype])
+    assert ev.value(THETA) == value
+    np.testing.assert_array_equal(ev.grad(THETA), grad)
+    volume = ev.volume(THETA)
+    assert volume.shape == GRID.shape and volume.dtype == dtype
+    _close(volume, ref.volume(p, t, THETA, GRID, ww), RTOL[dtype])
+    _close(
+        ev.sample(THETA),
+        ref.sample(p, t, THETA, GRID, ref.volume(p, t, THETA, GRID, ww)),
+        RTOL[dtype],
+    )
+
+
+@pytest.mark.parametrize("name", objective_names())
+@pytest.mark.parametrize("sigma", [0.0, 0.8])
+def test_gradient_matches_finite_differences(name, sigma):
+    points, dt, w = _events(400, seed=1)
+    ev = VolumeObjective(points, dt, GRID, make_objective(name, blur_sigma=sigma), w)
+    for theta in (THETA, np.array([-0.3, 0.4, -0.7])):
+        _close(ev.grad(theta), _central_difference(ev.value, theta), 1e-6)
+
+
+def test_reference_gradient_matches_finite_differences():
+    points, dt, w = _events(300, seed=2)
+
+    def value(theta):
+        return ref.value(points, dt, theta, GRID, w)
+
+    _close(
+        ref.value_and_grad(points, dt, THETA, GRID, w)[1], _central_difference(value, THETA), 1e-6
+    )
+
+
+@dataclass(frozen=True)
+class _MeanOfCubes(Objective):
+    """A non-moment objective (the docs' one-file recipe) to exercise the unfused path."""
+
+    name: ClassVar[str] = "mean_of_cubes"
+
+    def value(self, volume):
+        return float(np.mean(np.asarray(volume, np.float64) ** 3))
+
+    def value_and_derivative(self, volume, out):
+        np.multiply(volume, volume, out=out)
+        out *= 3.0 / volume.size
+        return self.value(volume)
+
+
+def test_custom_objective_uses_the_generic_path():
+    points, dt, w = _events(400, seed=3)
+    ev = VolumeObjective(points, dt, GRID, _MeanOfCubes(), w)
+    volume = ref.volume(points, dt, THETA, GRID, w)
+    assert ev.value(THETA) == pytest.approx(np.mean(volume**3), rel=1e-12)
+    _close(ev.grad(THETA), _central_difference(ev.value, THETA), 1e-6)
+    np.testing.assert_array_equal(
+        ev.batch_value(np.stack([THETA, -THETA])), [ev.value(THETA), ev.value(-THETA)]
+    )
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_batch_value_equals_value_one_by_one(dtype):
+    points, dt, w = _events(500, seed=4)
+    ev = VolumeObjective(points, dt, GRID, "variance", w, dtype)
+    thetas = np.random.default_rng(0).normal(0.0, 1.0, (7, 3))
+    np.testing.assert_array_equal(ev.batch_value(thetas), [ev.value(t) for t in thetas])
+    assert ev.batch_value(np.zeros((0, 3))).shape == (0,)
+
+
+@pytest.mark.parametrize("n_events", [30, 5000])
+def test_volume_buffer_is_zero_between_calls(n_events):
+    """Both clearing strategies (by the events' cells, by a memset) leave the buffer zero."""
+    points, dt, w = _events(n_events, seed=5)
+    ev = VolumeObjective(points, dt, GRID, "variance", w)
+    first = ev.value_and_grad(THETA)
+    for theta in (THETA, -THETA, 2 * THETA):
+        ev.value_and_grad(theta)
+        ev.sample(theta)
+        assert not ev._padded.any()
+    assert ev.value_and_grad(THETA)[0] == first[0]
+    np.testing.assert_array_equal(ev.value_and_grad(THETA)[1], first[1])
+
+
+def test_weights_and_samples_follow_the_callers_order():
+    points, dt, w = _events(300, seed=6)
+    w[::3] = 0.0  # events without membership still get sampled for the P-step
+    ev = VolumeObjective(points, dt, GRID, "variance")
+    ev.set_weights(w)
+    _close(ev.value(THETA), ref.value(points, dt, THETA, GRID, w), 1e-9)
+    _close(ev.grad(THETA), ref.value_and_grad(points, dt, THETA, GRID, w)[1], 1e-9)
+    volume = ref.volume(points, dt, THETA, GRID, w)
+    _close(ev.sample(THETA), ref.sample(points, dt, THETA, GRID, volume), 1e-9)
+    other = np.random.default_rng(1).uniform(0.0, 2.0, GRID.shape)
+    _close(ev.sample(THETA, other), ref.sample(points, dt, THETA, GRID, other), 1e-9)
+
+
+def test_empty_input():
+    ev = VolumeObjective(np.zeros((0, 3)), np.zeros(0), GRID, "variance")
+    value, grad = ev.value_and_grad(THETA)
+    assert value == 0.0 and np.array_equal(grad, np.zeros(3))
+    assert ev.n_events == 0 and ev.sample(THETA).shape == (0,)
+    assert not ev.volume(THETA).any()
+    np.testing.assert_array_equal(ev.batch_value(np.ones((3, 3))), np.zeros(3))
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_single_event(dtype):
+    point = GRID.origin + np.array([3.3, 4.6, 2.2]) * GRID.voxel_size
+    ev = VolumeObjective(point[None], [0.01], GRID, "variance", [0.5], dtype)
+    volume = ev.volume(THETA)
+    assert volume.sum() == pytest.approx(0.5) and np.count_nonzero(volume) == 8
+    expected = ref.value_and_grad(point[None], np.array([0.01]), THETA, GRID, np.array([0.5]))
+    _close(ev.value_and_grad(THETA)[0], expected[0], RTOL[dtype])
+    _close(ev.value_and_grad(THETA)[1], expected[1], RTOL[dtype])
+
+
+def test_corners_outside_are_dropped_one_by_one():
+    """An event leaving the grid fades out continuously: its mass is the in-grid weight."""
+    grid = VoxelGrid(np.zeros(3), np.ones(3), (4, 4, 4))
+    for x, mass in [(-0.25, 0.75), (-0.999, 0.001), (-1.0, 0.0), (2.5, 1.0), (3.4, 0.6)]:
+        ev = VolumeObjective([[x, 1.5, 1.5]], [0.0], grid, "variance")
+        assert ev.volume(np.zeros(3)).sum() == pytest.approx(mass, abs=1e-12)
+    # the value is continuous across the border, as a function of theta
+    ev = VolumeObjective([[0.0, 1.5, 1.5]], [1.0], grid, "sum_of_squares")
+    values = [ev.value(np.array([t, 0.0, 0.0])) for t in (0.999, 0.9999, 1.0, 1.0001)]
+    assert np.all(np.diff(values) <= 0) and values[-2] < 1e-7 and values[-1] == 0.0
+
+
+def test_planar_model_on_a_single_layer():
+    """nz == 1: points on the layer get z weight 1, dO/dtheta_z = 0, x/y match the 2-D reference."""
+    rng = np.random.default_rng(7)
+    grid = VoxelGrid(np.array([0.0, 0.0, 0.0]), np.ones(3), (24, 18, 1))
+    n = 600
+    points = np.column_stack([rng.integers(0, 24, n), rng.integers(0, 18, n), np.zeros(n)])
+    dt = rng.uniform(-0.05, 0.05, n)
+    theta = np.array([14.0, -9.0, 0.0])
+    ev = VolumeObjective(points, dt, grid, "variance")
+    volume = ev.volume(theta)
+    assert volume.sum() == pytest.approx(ref.volume(points, dt, theta, grid).sum())
+    ones = VolumeObjective(points, np.zeros(n), grid, "variance").volume(np.zeros(3))
+    np.testing.assert_array_equal(
+        ones[..., 0],
+        np.histogram2d(*points[:, :2].T, bins=(24, 18), range=((-0.5, 23.5), (-0.5, 17.5)))[0],
+    )
+    value, grad = ev.value_and_grad(theta)
+    ref_value, ref_grad = ref.value_and_grad(points, dt, theta, grid)
+    _close(value, ref_value, 1e-9)
+    _close(grad, ref_grad, 1e-9)
+    assert grad[2] == 0.0
+    _close(grad, _central_difference(ev.value, theta), 1e-6)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"points": np.full((3, 3), np.nan)}, "points has 9 NaN/inf"),
+        ({"points": np.zeros((3, 2))}, r"points must have shape N x 3"),
+        ({"dt": np.zeros(2)}, r"dt must have shape 3"),
+        ({"dt": [0.0, np.inf, 0.0]}, "dt has 1 NaN/inf values .first at index .1,"),
+        ({"weights": [1.0, np.nan, 1.0]}, "weights has 1 NaN"),
+        ({"weights": np.ones(4)}, "weights must have shape 3"),
+        ({"objective": "entropy"}, "unknown objective 'entropy'"),
+        ({"grid": (4, 4, 4)}, "grid must be a VoxelGrid"),
+        ({"dtype": np.int32}, "dtype must be float32 or float64"),
+    ],
+)
+def test_invalid_inputs_raise(kwargs, match):
+    args = {"points": np.zeros((3, 3)), "dt": np.zeros(3), "grid": GRID, "objective": "variance"}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        VolumeObjective(**args)
+
+
+def test_invalid_theta_raises():
+    ev = VolumeObjective(np.zeros((3, 3)), np.zeros(3), GRID, "variance")
+    for call in (ev.value, ev.value_and_grad, ev.grad, ev.volume, ev.sample):
+        with pytest.raises(ValueError, match="theta has 1 NaN"):
+            call(np.array([0.0, np.nan, 0.0]))
+    with pytest.raises(ValueError, match="theta must have shape 3"):
+        ev.value(np.zeros(2))
+    with pytest.raises(ValueError, match="thetas must have shape N x 3"):
+        ev.batch_value(np.zeros(3))
+    with pytest.raises(ValueError, match="volume must have shape 14 x 11 x 6"):
+        ev.sample(np.zeros(3), np.zeros((2, 2, 2)))
