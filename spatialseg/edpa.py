@@ -62,14 +62,28 @@ def _time_fraction(t: np.ndarray, t1: float, t2: float) -> np.ndarray:
     return np.clip((np.asarray(t, dtype=np.float64) - t1) / (t2 - t1), 0.0, 1.0)
 
 
-def _interpolate(z1: np.ndarray, z2: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """``Z1 + s (Z2 - Z1)`` where both are known, the known one where one is, else NaN."""
+def _interpolate(
+    z1: np.ndarray, z2: np.ndarray, s: np.ndarray, edge_ratio: float | None = None
+) -> np.ndarray:
+    """``Z1 + s (Z2 - Z1)`` where both are known, the known one where one is, else NaN.
+
+    Decision (``edge_ratio``): where the two maps disagree by more than ``edge_ratio`` times
+    the nearer depth, the pixel saw an occlusion edge pass (object, then background or the
+    reverse). The event belongs to the moving edge, i.e. to the occluder, so it takes the
+    nearer depth; interpolating would give a depth between object and background that
+    drifts linearly in time and mimics a spurious motion along Z. ``None`` interpolates
+    everywhere (the paper's reading).
+    """
     z1 = np.asarray(z1, dtype=np.float64)
     z2 = np.asarray(z2, dtype=np.float64)
     k1, k2 = _known(z1), _known(z2)
     z = np.full(z1.shape, np.nan)
     both = k1 & k2
     z[both] = z1[both] + s[both] * (z2[both] - z1[both])
+    if edge_ratio is not None:
+        near = np.minimum(z1, z2)
+        edge = both & (np.abs(z2 - z1) > edge_ratio * np.where(both, near, 1.0))
+        z[edge] = near[edge]
     z[k1 & ~k2] = z1[k1 & ~k2]
     z[k2 & ~k1] = z2[k2 & ~k1]
     return z
@@ -84,19 +98,21 @@ def _check_map(depth_map: DepthMap, events: EventStream) -> None:
         )
 
 
-def event_depth(events: EventStream, first: DepthMap, second: DepthMap) -> np.ndarray:
+def event_depth(
+    events: EventStream, first: DepthMap, second: DepthMap, *, edge_ratio: float | None = None
+) -> np.ndarray:
     """Depth (N,) of each event: ``Z1 + (t - T1)/(T2 - T1) (Z2 - Z1)`` at its pixel.
 
     A depth unknown in one map is taken from the other; unknown in both gives NaN. Times
     outside [T1, T2] are clamped to the nearer map; ``T2 == T1`` uses Z1 (Z2 where Z1 is
-    unknown).
+    unknown). Occlusion edges (``edge_ratio``, see :func:`_interpolate`) take the nearer depth.
     """
     _check_map(first, events)
     _check_map(second, events)
     s = _time_fraction(events.t, first.t, second.t)
     z1 = first.depth[events.y, events.x]
     z2 = second.depth[events.y, events.x]
-    return _interpolate(z1, z2, s)
+    return _interpolate(z1, z2, s, edge_ratio)
 
 
 def fill_depth(depth: np.ndarray, x: np.ndarray, y: np.ndarray, *, radius: int) -> np.ndarray:
@@ -154,14 +170,16 @@ def _window_maps(window: Recording) -> tuple[DepthMap, DepthMap]:
     return window.depth_maps[0], window.depth_maps[1]
 
 
-def lift(window: Recording, *, unknown_depth: str, fill_radius: int) -> Lifted:
+def lift(
+    window: Recording, *, unknown_depth: str, fill_radius: int, edge_ratio: float | None = None
+) -> Lifted:
     """Depth and 3-D position of each event of a window (two depth maps), per METHOD.md 1.
 
     ``unknown_depth`` says what happens to an event with no depth in either map: "drop"
     excludes it (``valid`` False; the pipeline labels it -1), "fill" takes, in each map,
     the median known depth within ``fill_radius`` pixels (:func:`fill_depth`) and
     interpolates those; an event still without depth is dropped. NaN never reaches
-    ``points``.
+    ``points``. ``edge_ratio`` is the occlusion-edge rule of :func:`event_depth`.
     """
     if unknown_depth not in UNKNOWN_DEPTH_POLICIES:
         raise ValueError(
@@ -171,7 +189,7 @@ def lift(window: Recording, *, unknown_depth: str, fill_radius: int) -> Lifted:
     if not len(ev):
         raise ValueError(f"{window.name}: the window has no events; check the window bounds")
     first, second = _window_maps(window)
-    depth = event_depth(ev, first, second)
+    depth = event_depth(ev, first, second, edge_ratio=edge_ratio)
     missing = ~np.isfinite(depth)
     if unknown_depth == "fill" and missing.any():
         x, y = ev.x[missing], ev.y[missing]

@@ -34,14 +34,17 @@ class InitResult:
     the image-plane model).
 
     ``flows`` (M, 3) is each event's normal flow, NaN where the event was not sampled or
-    gave no valid estimate; ``n_valid`` counts the finite rows. ``fallback`` is True when
-    too few valid flows existed and ``thetas`` were spread around their mean instead.
+    gave no valid estimate; ``n_valid`` counts the finite rows. ``labels`` (M,) is the
+    initial motion whose velocity best satisfies each such event's own constraints (-1
+    elsewhere). ``fallback`` is True when too few valid flows existed and ``thetas`` were
+    spread around their mean instead (then every label is -1).
     """
 
     thetas: np.ndarray
     flows: np.ndarray
     n_valid: int
     fallback: bool
+    labels: np.ndarray
 
 
 def _check_points(points: np.ndarray, t: np.ndarray) -> None:
@@ -377,7 +380,10 @@ def initial_motions(
     if len(np.unique(good, axis=0)) < n_clusters:
         centre = good.mean(axis=0) if len(good) else np.zeros(3)
         step = float(grid.voxel_size[:dim].min() / (t.max() - t.min()))
-        return InitResult(_spread(centre, step, int(n_clusters), dim), flows, len(good), True)
+        spread = _spread(centre, step, int(n_clusters), dim)
+        return InitResult(spread, flows, len(good), True, np.full(m, -1))
     kmeans = KMeans(int(n_clusters), n_init=int(n_init), random_state=seed).fit(good)
     thetas = _refine_clusters(a[ok], b[ok], kmeans.labels_, kmeans.cluster_centers_, max_condition)
-    return InitResult(thetas, flows, len(good), False)
+    labels = np.full(m, -1)
+    labels[sample[ok]] = _constraint_cost(a[ok], b[ok], thetas).argmin(axis=1)
+    return InitResult(thetas, flows, len(good), False, labels)

@@ -7,14 +7,28 @@ never through pyplot, so plotting works headless and leaves a user's pyplot back
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+import matplotlib as mpl
 import numpy as np
 from matplotlib.figure import Figure
 
 from spatialseg.events import EventStream
 from spatialseg.recording import Recording
 
-__all__ = ["event_image", "label_shares", "save_scene_preview"]
+if TYPE_CHECKING:
+    from spatialseg.pipeline import SegmentationResult, WindowResult
+
+__all__ = [
+    "cluster_image",
+    "event_image",
+    "label_shares",
+    "save_result_figures",
+    "save_scene_preview",
+]
+
+#: Cluster colours (tab10); unassigned events are drawn grey.
+_UNASSIGNED = np.array([0.6, 0.6, 0.6])
 
 #: Red for positive events, blue for negative ones; a pixel with both mixes towards purple.
 _POSITIVE_INK = np.array([0.0, 1.0, 1.0])
@@ -73,3 +87,94 @@ def save_scene_preview(recording: Recording, path: str | Path) -> Path:
     out = Path(path)
     fig.savefig(out, dpi=100)
     return out
+
+
+def _cluster_colours(k: int) -> np.ndarray:
+    """RGB colours for clusters 0..k-1 (tab10, cycled)."""
+    cmap = mpl.colormaps["tab10"]
+    return np.array([cmap(j % 10)[:3] for j in range(k)])
+
+
+def cluster_image(events: EventStream, labels: np.ndarray, n_clusters: int) -> np.ndarray:
+    """Events coloured by cluster on white (H x W x 3 uint8): each pixel takes the colour of
+    its most frequent label; unassigned (-1) events are grey."""
+    colours = np.vstack([_UNASSIGNED, _cluster_colours(n_clusters)])
+    index = events.y.astype(np.int64) * events.width + events.x
+    counts = np.zeros((events.width * events.height, n_clusters + 1))
+    np.add.at(counts, (index, labels + 1), 1.0)
+    hit = counts.sum(axis=1) > 0
+    rgb = np.ones((counts.shape[0], 3))
+    rgb[hit] = colours[counts[hit].argmax(axis=1)]
+    return np.round(rgb.reshape(events.height, events.width, 3) * 255).astype(np.uint8)
+
+
+def _projected_volumes(window: WindowResult) -> list[np.ndarray]:
+    """Each cluster's motion applied to ALL usable events, summed over depth (Y x X images)."""
+    from spatialseg.volume import VolumeObjective
+
+    prep = window.prepared
+    volume = VolumeObjective(prep.points, prep.t - window.t_ref, prep.grid, "variance")
+    images = []
+    for theta in window.clustering.thetas:
+        full = np.zeros(3)
+        full[: theta.size] = theta
+        images.append(volume.volume(full).sum(axis=2).T)
+    return images
+
+
+def _save(fig: Figure, path: Path) -> Path:
+    """Save a figure as PNG and return the path."""
+    fig.savefig(path, dpi=100)
+    return path
+
+
+def save_result_figures(out_dir: Path, recording: Recording, seg: SegmentationResult) -> list[Path]:
+    """Write the run's figures: events by cluster, and per window the volume warped by each
+    cluster's motion (one object sharp, the others blurred) and the contrast/theta curves."""
+    k = max(len(w.clustering.thetas) for w in seg.windows)
+    fig = Figure(figsize=(6, 4.8), layout="constrained")
+    ax = fig.subplots()
+    ax.imshow(cluster_image(recording.events, seg.labels, k), interpolation="nearest")
+    ax.set_title(f"{recording.name}: events by cluster (grey: unassigned)")
+    paths = [_save(fig, out_dir / "clusters.png")]
+    for w, window in enumerate(seg.windows):
+        suffix = f"_w{w}" if len(seg.windows) > 1 else ""
+        paths += _window_figures(out_dir, window, suffix)
+    return paths
+
+
+def _window_figures(out_dir: Path, window: WindowResult, suffix: str) -> list[Path]:
+    """The warped-volume panels and the contrast and theta curves of one window."""
+    c, units = window.clustering, window.prepared.units
+    images = _projected_volumes(window)
+    fig = Figure(figsize=(5 * len(images), 4.4), layout="constrained")
+    for j, (ax, image) in enumerate(
+        zip(np.atleast_1d(fig.subplots(1, len(images))), images, strict=True)
+    ):
+        ax.imshow(image, cmap="gray_r", interpolation="nearest", origin="upper")
+        theta = ", ".join(f"{v:+.3f}" for v in c.thetas[j])
+        ax.set_title(f"warped by cluster {j}: [{theta}] {units}")
+    paths = [_save(fig, out_dir / f"warped_volumes{suffix}.png")]
+
+    iterations = [r.iteration for r in c.history]
+    fig = Figure(figsize=(6, 4), layout="constrained")
+    ax = fig.subplots()
+    per_cluster = np.array([r.per_cluster for r in c.history])
+    colours = _cluster_colours(per_cluster.shape[1])
+    for j in range(per_cluster.shape[1]):
+        ax.plot(iterations, per_cluster[:, j], "o-", color=colours[j], label=f"cluster {j}")
+    ax.set(
+        xlabel="iteration", ylabel="contrast (variance of the VWE)", title="contrast per cluster"
+    )
+    ax.legend()
+    paths.append(_save(fig, out_dir / f"variance{suffix}.png"))
+
+    thetas = np.array([r.thetas for r in c.history])
+    fig = Figure(figsize=(4 * thetas.shape[2], 3.6), layout="constrained")
+    for a, ax in enumerate(np.atleast_1d(fig.subplots(1, thetas.shape[2]))):
+        for j in range(thetas.shape[1]):
+            ax.plot(iterations, thetas[:, j, a], "o-", color=colours[j], label=f"cluster {j}")
+        ax.set(xlabel="iteration", ylabel=f"theta_{'xyz'[a]} ({units})")
+    ax.legend()
+    paths.append(_save(fig, out_dir / f"theta{suffix}.png"))
+    return paths

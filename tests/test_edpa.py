@@ -174,3 +174,12 @@ def test_lifted_points_feed_the_grid():
     grid = grid_around(lifted.points, size, margin=0.1, max_voxels=10**6)
     c = grid.continuous_index(lifted.points)
     assert np.all(c >= 0) and np.all(c <= np.array(grid.shape) - 1)
+
+
+def test_occlusion_edges_take_the_nearer_depth():
+    """A pixel whose depth jumps between the maps (an edge passing) takes the occluder's depth."""
+    from spatialseg.edpa import _interpolate
+
+    z1, z2, s = np.array([1.0, 1.0]), np.array([5.0, 1.1]), np.array([0.5, 0.5])
+    assert np.allclose(_interpolate(z1, z2, s), [3.0, 1.05])
+    assert np.allclose(_interpolate(z1, z2, s, edge_ratio=0.2), [1.0, 1.05])

@@ -1,0 +1,121 @@
+"""A run's outputs: ``labels.npy``, ``probabilities.npy``, ``result.json`` and the figures.
+
+Every file is written to a temporary name and renamed into place, and ``result.json`` is
+written last, so a crashed run never leaves a directory that reads as a finished one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from spatialseg.metrics import segmentation_metrics
+from spatialseg.pipeline import SegmentationResult, WindowResult
+from spatialseg.recording import Recording
+
+__all__ = ["summarise", "write_outputs"]
+
+
+def _window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) -> dict[str, Any]:
+    """JSON-ready description of one window: clusters, convergence, curves, metrics."""
+    c = res.clustering
+    counts = np.bincount(res.labels[res.labels >= 0], minlength=c.thetas.shape[0])
+    thetas = np.zeros((c.thetas.shape[0], 3))
+    thetas[:, : c.thetas.shape[1]] = c.thetas
+    summary: dict[str, Any] = {
+        "n_events": int(res.labels.size),
+        "n_unassigned": int(np.sum(res.labels < 0)),
+        "clusters": [
+            {
+                "id": j,
+                "theta": thetas[j].tolist(),
+                "variance": float(c.values[j]),
+                "n_events": int(counts[j]),
+            }
+            for j in range(thetas.shape[0])
+        ],
+        "units": res.prepared.units,
+        "t_ref": res.t_ref,
+        "grid_shape": list(res.prepared.grid.shape),
+        "iterations": c.iterations,
+        "converged": c.converged,
+        "stop_reason": c.reason,
+        "init_fallback": res.init_fallback,
+        "timings": {k: round(v, 6) for k, v in res.timings.items()},
+        "history": {
+            "total": [r.total for r in c.history],
+            "per_cluster": [r.per_cluster.tolist() for r in c.history],
+            "thetas": [r.thetas.tolist() for r in c.history],
+            "n_evals": [r.n_evals for r in c.history],
+        },
+    }
+    if truth is not None:
+        velocities = thetas if res.prepared.units == "m/s" else None
+        summary["metrics"] = segmentation_metrics(
+            res.labels, truth, pred_velocities=velocities, true_motions=motions
+        )
+    return summary
+
+
+def summarise(
+    recording: Recording,
+    seg: SegmentationResult,
+    cfg: Mapping[str, Any],
+    timings: Mapping[str, float],
+) -> dict[str, Any]:
+    """The content of ``result.json``; the first window's fields are also at the top level."""
+    gt = recording.ground_truth
+    windows = []
+    for res, index in zip(seg.windows, seg.indices, strict=True):
+        truth = gt.labels[index] if gt is not None else None
+        windows.append(_window_summary(res, truth, gt.motions if gt is not None else None))
+    first = windows[0]
+    summary = {
+        "scene": recording.name,
+        "n_events": len(recording.events),
+        "n_clusters": int(cfg["n_clusters"]),
+        "model": cfg["model"]["name"],
+        "objective": cfg["objective"]["name"],
+        "optimizer": cfg["optimizer"].get("_target_", ""),
+        **{k: first[k] for k in ("clusters", "units", "iterations", "converged", "stop_reason")},
+        "timings": {k: round(float(v), 6) for k, v in timings.items()},
+        "windows": windows,
+    }
+    if gt is not None:
+        summary["metrics"] = _aggregate_metrics(windows)
+    return summary
+
+
+def _aggregate_metrics(windows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Metrics of a single window, or event-weighted means of accuracy over several."""
+    if len(windows) == 1:
+        return windows[0]["metrics"]
+    weights = np.array([w["n_events"] for w in windows], float)
+    keys = ("accuracy", "unassigned_share")
+    return {k: float(np.average([w["metrics"][k] for w in windows], weights=weights)) for k in keys}
+
+
+def _atomic_save(path: Path, write: Any) -> None:
+    """Write through a temporary file in the same directory, then rename into place."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        write(f)
+    os.replace(tmp, path)
+
+
+def write_outputs(out_dir: Path, seg: SegmentationResult, summary: Mapping[str, Any]) -> list[Path]:
+    """Write labels, probabilities and result.json (last) into ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    labels, probs, result = (
+        out_dir / n for n in ("labels.npy", "probabilities.npy", "result.json")
+    )
+    _atomic_save(labels, lambda f: np.save(f, seg.labels.astype(np.int64)))
+    _atomic_save(probs, lambda f: np.save(f, seg.probabilities.astype(np.float32)))
+    text = json.dumps(summary, indent=2).encode()
+    _atomic_save(result, lambda f: f.write(text))
+    return [labels, probs, result]

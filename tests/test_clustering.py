@@ -1,0 +1,78 @@
+"""Algorithm 1: memberships, stopping rules, and recovery of two known motions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import optimizers
+from spatialseg.clustering import (
+    ConvergenceRules,
+    initial_memberships,
+    iterative_clustering,
+    update_memberships,
+)
+from spatialseg.grid import grid_around
+from spatialseg.pipeline import ModelEvaluator
+from spatialseg.volume import VolumeObjective
+
+
+def test_update_memberships_normalises_and_guards_zero_rows():
+    p = update_memberships(np.array([[1.0, 3.0], [0.0, 0.0], [-1.0, 2.0]]))
+    assert np.allclose(p, [[0.25, 0.75], [0.5, 0.5], [0.0, 1.0]])
+
+
+def test_initial_memberships_flow_and_uniform():
+    points = np.array([[0.0, 0, 0], [0.1, 0, 0], [5.0, 0, 0], [5.1, 0, 0]])
+    labels = np.array([0, -1, 1, -1])
+    p = initial_memberships(points, np.ones(3), labels, 2, mode="flow", confidence=0.9)
+    assert np.allclose(p, [[0.9, 0.1], [0.9, 0.1], [0.1, 0.9], [0.1, 0.9]])
+    u = initial_memberships(points, np.ones(3), labels, 2, mode="uniform", confidence=0.9)
+    assert np.allclose(u, 0.5)
+    with pytest.raises(ValueError, match="init_memberships must be"):
+        initial_memberships(points, np.ones(3), labels, 2, mode="kmeans", confidence=0.9)
+
+
+def test_convergence_rules_validate():
+    with pytest.raises(ValueError, match="max_iterations"):
+        ConvergenceRules(max_iterations=0, tol=1e-3, patience=1)
+
+
+def _two_motion_cloud(rng: np.random.Generator):
+    """Textured points on two planes translating with known 3-D velocities."""
+    truth = np.array([[0.3, 0.1, 0.0], [-0.2, 0.25, 0.0]])
+    n = 3000
+    seeds = [rng.uniform(-0.1, 0.1, size=(60, 2)) + c for c in ([-0.2, 0.0], [0.2, 0.0])]
+    points, labels, t = [], [], rng.uniform(0.0, 0.2, size=2 * n)
+    for j in range(2):
+        base = seeds[j][rng.integers(0, 60, n)] + rng.normal(0, 0.002, size=(n, 2))
+        xyz = np.column_stack([base, np.full(n, 1.0 + 0.2 * j)])
+        tj = t[j * n : (j + 1) * n]
+        points.append(xyz + (tj - 0.1)[:, None] * truth[j])
+        labels.append(np.full(n, j))
+    return np.vstack(points), t - 0.1, np.concatenate(labels), truth
+
+
+def test_clustering_recovers_two_known_motions():
+    rng = np.random.default_rng(0)
+    points, dt, labels, truth = _two_motion_cloud(rng)
+    grid = grid_around(points, np.array([0.005, 0.005, 0.02]), 0.1, 10**7)
+    evaluator = ModelEvaluator(VolumeObjective(points, dt, grid, "variance"), 3)
+    start = truth + np.array([[0.05, -0.04, 0.0], [-0.04, 0.05, 0.0]])
+    p0 = initial_memberships(points, grid.voxel_size, labels, 2, mode="flow", confidence=0.9)
+    bounds = np.array([[-1.0, 1.0], [-1.0, 1.0], [-0.1, 0.1]])
+    result = iterative_clustering(
+        evaluator,
+        optimizers.create("ssa_ga"),
+        start,
+        p0,
+        bounds,
+        rules=ConvergenceRules(max_iterations=5, tol=1e-3, patience=1),
+        evals_per_step=200,
+        p_step_sigma=2.0,
+        seed=0,
+    )
+    assert np.all(np.abs(result.thetas[:, :2] - truth[:, :2]) < 0.03)
+    assert np.mean(result.probabilities.argmax(axis=1) == labels) > 0.95
+    totals = [r.total for r in result.history]
+    assert len(totals) == result.iterations and all(np.isfinite(totals))

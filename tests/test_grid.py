@@ -1,0 +1,29 @@
+"""The voxel grid: extent, continuous coordinates, clear errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spatialseg.grid import VoxelGrid, grid_around
+
+
+def test_grid_around_covers_points_with_margin():
+    pts = np.array([[0.0, 0.0, 1.0], [1.0, 2.0, 1.5]])
+    grid = grid_around(pts, np.array([0.1, 0.1, 0.05]), margin=0.1, max_voxels=10**7)
+    c = grid.continuous_index(pts)
+    assert np.all(c >= 1.0) and np.all(c <= np.array(grid.shape) - 2.0)
+    assert np.allclose(grid.continuous_index(grid.origin[None]), 0.0)
+
+
+def test_grid_around_rejects_too_many_voxels_and_nan():
+    pts = np.array([[0.0, 0.0, 0.0], [10.0, 10.0, 10.0]])
+    with pytest.raises(ValueError, match=r"increase model\.xy_scale"):
+        grid_around(pts, 0.01, margin=0.0, max_voxels=1000)
+    with pytest.raises(ValueError, match="NaN"):
+        grid_around(np.array([[np.nan, 0.0, 0.0]]), 0.1, margin=0.0, max_voxels=1000)
+
+
+def test_voxel_grid_validates():
+    with pytest.raises(ValueError, match="size > 0"):
+        VoxelGrid(np.zeros(3), np.array([1.0, 0.0, 1.0]), (2, 2, 2))
