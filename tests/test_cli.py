@@ -2,22 +2,13 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
+from functools import partial
 
 import pytest
 
+from tests.helpers import run_module
 
-def spatialseg(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    """Run ``python -m spatialseg ARGS`` in ``cwd`` the way a user does."""
-    return subprocess.run(
-        [sys.executable, "-m", "spatialseg", *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+spatialseg = partial(run_module, "spatialseg")
 
 
 def test_help_works_outside_the_checkout(tmp_path):

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
+from tests.helpers import run_module
 from tests.test_cli import spatialseg
 
 
@@ -18,19 +17,12 @@ def recording_dir(tmp_path_factory):
     """A small interior recording written by the simulator's command line."""
     root = tmp_path_factory.mktemp("rec")
     out = root / "interior"
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "spatialseg.simulate",
-            "+scene=interior",
-            f"out={out}",
-            "window.events=3000",
-            f"hydra.run.dir={root / 'sim'}",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
+    done = run_module(
+        "spatialseg.simulate",
+        "+scene=interior",
+        f"out={out}",
+        "window.events=3000",
+        f"hydra.run.dir={root / 'sim'}",
         cwd=root,
     )
     assert done.returncode == 0, done.stderr

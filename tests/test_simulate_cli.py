@@ -2,32 +2,21 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
+from functools import partial
 
 import pytest
 
+from spatialseg.io import read_recording
+from tests.helpers import run_module
 
-def _simulate(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    """Run ``python -m spatialseg.simulate ARGS`` in ``cwd``."""
-    return subprocess.run(
-        [sys.executable, "-m", "spatialseg.simulate", *args],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+_simulate = partial(run_module, "spatialseg.simulate")
 
 
 def test_cli_writes_a_recording_with_preview(tmp_path):
-    io = pytest.importorskip("spatialseg.io")
-    if not hasattr(io, "read_recording"):
-        pytest.skip("spatialseg.io has no reader yet")
     done = _simulate("+scene=interior", "out=rec", "window.events=2000", "seed=1", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert done.stdout.startswith("interior: 2000 events over ")
-    rec = io.read_recording(tmp_path / "rec")
+    rec = read_recording(tmp_path / "rec")
     assert len(rec.events) == 2000 and len(rec.depth_maps) == 2
     assert set(rec.ground_truth.motions) == {1, 2}
     assert (tmp_path / "rec" / "preview.png").is_file()
