@@ -4,7 +4,7 @@
 
 Simulates the interior scene with N events, writes it as a recording directory, then
 times ``python -m spatialseg +scene=recording scene.path=DIR`` (2 clusters, default
-optimiser, figures off) as a subprocess: process start, imports, reading, EDPA,
+optimiser, figures and MLflow tracking off) as a subprocess: process start, imports, reading, EDPA,
 initialisation, clustering and writing the outputs. Reports the median wall time and
 the run's own stage timings from result.json.
 """

@@ -18,6 +18,7 @@ from typing import Any
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from spatialseg.config import ConfigError, conf_dir, validate_config
@@ -68,6 +69,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from spatialseg.pipeline import log_iteration, segment_recording
     from spatialseg.results import summarise, write_outputs
     from spatialseg.scenes import load_scene
+    from spatialseg.tracking import record
 
     validate_config(cfg, HydraConfig.get().runtime.choices)
     out_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -87,18 +89,37 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
         save_result_figures(out_dir, recording, seg)
     write_outputs(out_dir, seg, summary)
+    record(cfg, summary, out_dir)
     _report(summary, out_dir)
     return summary
 
 
+def _fail_job(cfg: DictConfig, exc: Exception) -> None:
+    """Record a failed multirun job and report it, so the sweep goes on with the next job."""
+    from spatialseg.tracking import record_failure
+
+    record_failure(cfg, exc)
+    print(f"error: {exc}", file=sys.stderr)
+    if not isinstance(exc, USER_ERRORS):
+        log.error("job failed", exc_info=exc)
+
+
 def guarded(task: Callable[[DictConfig], object]) -> Callable[[DictConfig], None]:
-    """Wrap a Hydra task so a user mistake ends in one ``error:`` line and exit status 2."""
+    """Wrap a Hydra task so a user mistake ends in one ``error:`` line and exit status 2.
+
+    In a multirun, a failing job (any exception) is recorded as failed and the sweep goes on.
+    """
 
     def wrapper(cfg: DictConfig) -> None:
         try:
             task(cfg)
-        except USER_ERRORS as exc:
+        except Exception as exc:
             if os.environ.get("SPATIALSEG_DEBUG"):
+                raise
+            if HydraConfig.get().mode == RunMode.MULTIRUN:
+                _fail_job(cfg, exc)
+                return
+            if not isinstance(exc, USER_ERRORS):
                 raise
             print(f"error: {exc}", file=sys.stderr)
             sys.exit(2)
