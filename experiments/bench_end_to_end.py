@@ -47,6 +47,7 @@ def _segment(rec: Path, run: Path) -> tuple[float, dict]:
         "n_clusters=2",
         "output.plots=false",
         "output.progress=false",
+        "tracking=none",
         f"hydra.run.dir={run}",
     ]
     start = time.perf_counter()
