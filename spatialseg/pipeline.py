@@ -48,6 +48,8 @@ class Prepared:
 
     ``points`` (M x 3) are the usable events (``valid`` marks them among the window's N);
     ``dim`` is the number of velocity components the model estimates (3 spatial, 2 planar).
+    ``search_extent`` (3,) is the extent the search box is measured on (:func:`search_bounds`);
+    None means the grid's.
     """
 
     points: np.ndarray
@@ -56,6 +58,7 @@ class Prepared:
     grid: VoxelGrid
     dim: int
     units: str
+    search_extent: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,17 +221,41 @@ def prepare(window: Recording, cfg: Mapping[str, Any]) -> Prepared:
         fill_radius=int(cfg["edpa"]["fill_radius"]),
         edge_ratio=cfg["edpa"]["edge_ratio"],
     )
-    size = edpa.voxel_size(
-        lifted.points, window.camera, xy_scale=float(model["xy_scale"]), z_bins=int(vol["z_bins"])
+    dense = edpa.dense_depth_bands(
+        lifted.points[:, 2], gap=float(vol["depth_gap"]), min_share=vol["min_band_share"]
     )
-    grid = grid_around(lifted.points, size, float(vol["margin"]), int(vol["max_voxels"]))
-    return Prepared(lifted.points, lifted.t, lifted.valid, grid, 3, "m/s")
+    points = lifted.points[dense]
+    size = edpa.voxel_size(
+        points, window.camera, xy_scale=float(model["xy_scale"]), z_bins=int(vol["z_bins"])
+    )
+    grid = grid_around(points, size, float(vol["margin"]), int(vol["max_voxels"]))
+    valid = lifted.valid.copy()
+    valid[np.flatnonzero(valid)[~dense]] = False
+    extent = _search_extent(lifted.points, grid, float(vol["margin"]))
+    return Prepared(points, lifted.t[dense], valid, grid, 3, "m/s", extent)
+
+
+def _search_extent(all_points: np.ndarray, grid: VoxelGrid, margin: float) -> np.ndarray:
+    """Per axis, the larger of the grid's extent and all lifted points' (``margin`` added).
+
+    Decision: events left out of the grid (sparse depth bands) still count for the search
+    box, so trimming the grid makes the voxels finer without narrowing the velocities the
+    optimiser may try. Otherwise ``approach``'s grid, trimmed to 0.9 m deep, would cap vz
+    at 1.1 m/s, below the approaching box's 2.5 m/s. Without trimming this is the grid's
+    extent, as before.
+    """
+    span = all_points.max(axis=0) - all_points.min(axis=0)
+    return np.maximum(np.asarray(grid.shape, float) * grid.voxel_size, (1 + 2 * margin) * span)
 
 
 def search_bounds(prepared: Prepared, max_displacement: float) -> np.ndarray:
     """Velocity box: a motion may move a point at most ``max_displacement`` times the grid's
-    extent along each axis over the window (dim x 2, centred on zero)."""
-    extent = np.asarray(prepared.grid.shape, float) * prepared.grid.voxel_size
+    extent (``prepared.search_extent`` when set) along each axis over the window (dim x 2,
+    centred on zero)."""
+    if prepared.search_extent is not None:
+        extent = np.asarray(prepared.search_extent, float)
+    else:
+        extent = np.asarray(prepared.grid.shape, float) * prepared.grid.voxel_size
     duration = max(float(prepared.t.max() - prepared.t.min()), 1e-9)
     half = max_displacement * extent[: prepared.dim] / duration
     return np.column_stack([-half, half])

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spatialseg.edpa import back_project, event_depth, fill_depth, lift, voxel_size
+from spatialseg.edpa import (
+    back_project,
+    dense_depth_bands,
+    event_depth,
+    fill_depth,
+    lift,
+    voxel_size,
+)
 from spatialseg.events import EventStream
 from spatialseg.grid import grid_around
 from spatialseg.recording import Camera, DepthMap, Recording
@@ -183,3 +190,27 @@ def test_occlusion_edges_take_the_nearer_depth():
     z1, z2, s = np.array([1.0, 1.0]), np.array([5.0, 1.1]), np.array([0.5, 0.5])
     assert np.allclose(_interpolate(z1, z2, s), [3.0, 1.05])
     assert np.allclose(_interpolate(z1, z2, s, edge_ratio=0.2), [1.0, 1.05])
+
+
+def test_dense_depth_bands_leave_out_a_thin_distant_band():
+    """97 events on objects at 3.0-3.7 m, 3 noise events on a wall at 8 m (as on approach)."""
+    near = np.linspace(3.0, 3.7, 97)
+    z = np.r_[near, 8.0, 8.0, 8.0]
+    keep = dense_depth_bands(z, gap=0.1, min_share=0.05)
+    np.testing.assert_array_equal(keep, np.r_[np.ones(97, bool), np.zeros(3, bool)])
+    assert dense_depth_bands(z, gap=0.1, min_share=None).all()  # the paper's reading
+    # a far band holding many events (a far object) is kept
+    far = np.r_[near, np.full(40, 10.0)]
+    assert dense_depth_bands(far, gap=0.1, min_share=0.05).all()
+    # no band dense enough: nothing is left out
+    spread = np.array([1.0, 2.0, 4.0, 8.0])
+    assert dense_depth_bands(spread, gap=0.1, min_share=0.5).all()
+
+
+def test_dense_depth_bands_rejects_bad_input():
+    with pytest.raises(ValueError, match="depth_gap"):
+        dense_depth_bands(np.array([1.0, 2.0]), gap=0.0, min_share=0.05)
+    with pytest.raises(ValueError, match="min_band_share"):
+        dense_depth_bands(np.array([1.0, 2.0]), gap=0.1, min_share=1.5)
+    with pytest.raises(ValueError, match="finite"):
+        dense_depth_bands(np.array([1.0, NAN]), gap=0.1, min_share=0.05)

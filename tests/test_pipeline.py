@@ -12,9 +12,10 @@ from omegaconf import OmegaConf
 import optimizers
 from spatialseg.config import conf_dir
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.pipeline import segment_recording
+from spatialseg.pipeline import prepare, reference_time, search_bounds, segment_recording
 from spatialseg.recording import DepthMap
 from spatialseg.scenes import load_scene
+from spatialseg.volume import VolumeObjective
 
 
 def _config(*overrides: str) -> dict:
@@ -118,3 +119,24 @@ def test_long_recording_is_segmented_window_by_window(interior):
     assert len(seg.windows) == 2
     assert sum(len(i) for i in seg.indices) == len(rec.events)
     assert np.mean(seg.labels >= 0) > 0.9
+
+
+def test_approaching_box_contrast_peaks_at_its_depth_velocity():
+    """approach: noise on the 8 m wall would stretch the grid to 0.31 m depth voxels, as much
+    as the box moves in the window, and put the contrast's maximum near vz = -0.8 (truth
+    -2.5). Built on the dense depth band only, the truth beats vz = 0 and is in the box."""
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = OmegaConf.to_container(compose("config", overrides=["+scene=approach"]))
+    rec = load_scene(cfg["scene"], seed=0, window_events=15000)
+    prepared = prepare(rec, cfg)
+    assert prepared.grid.voxel_size[2] < 0.05
+    labels = rec.ground_truth.labels
+    assert np.all(labels[~prepared.valid] == -1)  # only noise events are left out
+    truth = rec.ground_truth.motions[1]
+    bounds = search_bounds(prepared, cfg["clustering"]["max_displacement"])
+    assert np.all((bounds[:, 0] < truth) & (truth < bounds[:, 1]))
+    t_ref = reference_time(prepared.t, cfg["volume"]["t_ref"])
+    volume = VolumeObjective(prepared.points, prepared.t - t_ref, prepared.grid, "variance")
+    volume.set_weights((labels[prepared.valid] == 1).astype(float))
+    lateral_only = np.array([truth[0], truth[1], 0.0])
+    assert volume.value(truth) > 1.5 * volume.value(lateral_only)
