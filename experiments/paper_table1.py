@@ -139,7 +139,7 @@ def run_scene_seed(
     prepared = prepare(window, cfg)
     ccfg = cfg["clustering"]
     bounds = search_bounds(prepared, float(ccfg["max_displacement"]))
-    init = initialise(window, prepared, cfg, N_FLOWS, seed=seed)
+    init = initialise(window, prepared, cfg, N_FLOWS, bounds, seed=seed)
     p = initial_memberships(
         prepared.points,
         prepared.grid.voxel_size,

@@ -182,10 +182,19 @@ def _image_flow_init(
 
 
 def initialise(
-    window: Recording, prepared: Prepared, cfg: Mapping[str, Any], k: int, *, seed: int
+    window: Recording,
+    prepared: Prepared,
+    cfg: Mapping[str, Any],
+    k: int,
+    bounds: np.ndarray,
+    *,
+    seed: int,
 ) -> motion_init.InitResult:
     """Initial motions by ``init.method``: ``image_flow`` (default) or ``time_surface``
-    (the paper's three planes; the only choice for the planar model's own 2-D space)."""
+    (the paper's three planes; the only choice for the planar model's own 2-D space).
+
+    ``bounds`` is the model's search box (:func:`search_bounds`); flows faster than it are
+    discarded."""
     params = dict(cfg["init"])
     method = params.pop("method")
     max_displacement = float(cfg["clustering"]["max_displacement"])
@@ -195,7 +204,6 @@ def initialise(
         )
     if method not in ("image_flow", "time_surface"):
         raise ValueError(f"init.method must be 'image_flow' or 'time_surface', got {method!r}")
-    bounds = search_bounds(prepared, max_displacement)
     return motion_init.initial_motions(
         prepared.points,
         prepared.t,
@@ -314,7 +322,7 @@ def segment_window(
 
     start = time.perf_counter()
     bounds = search_bounds(prepared, float(cfg["clustering"]["max_displacement"]))
-    init = initialise(window, prepared, cfg, k, seed=seed)
+    init = initialise(window, prepared, cfg, k, bounds, seed=seed)
     timings["init"] = time.perf_counter() - start
 
     start = time.perf_counter()
