@@ -1,12 +1,14 @@
 """An ESIM-style event simulator with ground truth, for the paper's scenes (``conf/scene``).
 
-A scene is a pinhole camera (static or translating at a constant ego-velocity), static
-textured background planes and moving textured boxes or patches with constant 3-D
-velocity. The scene is ray-cast with a z-buffer at an adaptive rate (no point moves more
-than ``render.max_pixel_step`` pixels between renders), and a pixel emits an event each
-time its log intensity crosses its reference by its contrast threshold (see
-:mod:`spatialseg.simulate.sensor`). Entry point: :func:`simulate_scene`; command line:
-``python -m spatialseg.simulate +scene=interior out=DIR``.
+A scene is a pinhole camera (static or translating at a constant ego-velocity), a static
+scene of textured planes and props (boxes or patches at rest), and moving textured boxes
+or patches with constant 3-D velocity. The output depth maps can be corrupted by a
+configured depth error (:mod:`spatialseg.simulate.depth_error`). The scene is ray-cast
+with a z-buffer at an adaptive rate (no point moves more than ``render.max_pixel_step``
+pixels between renders), and a pixel emits an event each time its log intensity crosses
+its reference by its contrast threshold (see :mod:`spatialseg.simulate.sensor`). Entry
+point: :func:`simulate_scene`; command line: ``python -m spatialseg.simulate
++scene=interior out=DIR``.
 """
 
 from spatialseg.simulate.scene import Scene, parse_scene

@@ -1,10 +1,11 @@
 """Ray casting with a z-buffer: a scene at time t as depth, object label and log intensity.
 
 Each pixel's ray ``(rx, ry, 1)`` (pixel centres at integer coordinates) is intersected with
-the background planes and the moving boxes; the nearest hit wins. Along such a ray the ray
-parameter is the depth Z itself. Rays are separable (rx per column, ry per row), so slab
-tests broadcast a row vector against a column vector. With a static camera the background
-is rendered once and reused bit for bit, so it can never produce events.
+the background planes, the static props and the moving boxes; the nearest hit wins. Along
+such a ray the ray parameter is the depth Z itself. Rays are separable (rx per column, ry
+per row), so slab tests broadcast a row vector against a column vector. With a static
+camera the static scene (planes and props) is rendered once and reused bit for bit, so it
+can never produce events.
 """
 
 from __future__ import annotations
@@ -16,10 +17,15 @@ import numpy as np
 from spatialseg.simulate.scene import Body, Scene
 from spatialseg.simulate.texture import sample_texture
 
-__all__ = ["STATIC_SCENE", "Frame", "Renderer"]
+__all__ = ["STATIC_SCENE", "Frame", "Renderer", "surface_count"]
 
 #: Ground-truth id of the static background ("static scene"); objects are 1..N in YAML order.
 STATIC_SCENE = 0
+
+
+def surface_count(scene: Scene) -> int:
+    """The number of textured surfaces (planes, props, objects): one texture key each."""
+    return len(scene.background) + len(scene.props) + len(scene.objects)
 
 
 @dataclass(frozen=True, eq=False)
@@ -35,7 +41,7 @@ class Frame:
 
 @dataclass(frozen=True, eq=False)
 class _Layer:
-    """Per-pixel depth, surface index (planes, then objects) and reflectance."""
+    """Per-pixel depth, surface index (planes, then props, then objects) and reflectance."""
 
     depth: np.ndarray
     surface: np.ndarray
@@ -79,12 +85,19 @@ def _face_coordinates(local: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, 
 
 
 class Renderer:
-    """Renders a :class:`Scene` at any time; textures are keyed by ``keys`` (one per surface)."""
+    """Renders a :class:`Scene` at any time; textures are keyed by ``keys``, one per surface
+    in the order planes, props, objects (see :func:`surface_count`)."""
 
     def __init__(self, scene: Scene, keys: np.ndarray) -> None:
         cam = scene.camera
+        if len(keys) != surface_count(scene):
+            raise ValueError(
+                f"{len(keys)} texture keys for {surface_count(scene)} surfaces; "
+                "pass one key per plane, prop and object"
+            )
         self.scene = scene
         self.keys = [int(k) for k in keys]
+        self.n_static = len(scene.background) + len(scene.props)
         self.rx = (np.arange(cam.width) - cam.cx) / cam.fx
         self.ry = (np.arange(cam.height) - cam.cy) / cam.fy
         self.axes = [_plane_axes(p.normal) for p in scene.background]
@@ -94,7 +107,7 @@ class Renderer:
         self._static = None if self.camera_moves else self._background(0.0)
 
     def _background(self, t: float) -> _Layer:
-        """The background planes alone at time t; every pixel must hit one."""
+        """The static scene at time t: the planes (every pixel must hit one), then the props."""
         cam, centre = self.scene.camera, self.scene.ego_velocity * t
         shape = (cam.height, cam.width)
         depth = np.full(shape, np.inf)
@@ -123,7 +136,10 @@ class Renderer:
             reflectance[rows, cols] = sample_texture(
                 plane.texture, self.keys[k], local @ e1, local @ e2
             )
-        return _Layer(depth, surface, reflectance)
+        layer = _Layer(depth, surface, reflectance)
+        for index, prop in enumerate(self.scene.props):
+            self._draw_box(layer, prop, len(self.scene.background) + index, t)
+        return layer
 
     def _box_bounds(self, body: Body, t: float) -> tuple[np.ndarray, np.ndarray]:
         """The box's near and far corners in camera coordinates at time t (in front: see
@@ -142,9 +158,8 @@ class Renderer:
             return None
         return slice(r0, r1), slice(c0, c1)
 
-    def _draw_body(self, layer: _Layer, index: int, t: float) -> None:
-        """Z-buffer one box into ``layer`` (depth, surface and reflectance, in place)."""
-        body = self.scene.objects[index]
+    def _draw_box(self, layer: _Layer, body: Body, surface: int, t: float) -> None:
+        """Z-buffer one box (prop or object, surface index ``surface``) into ``layer`` in place."""
         lo, hi = self._box_bounds(body, t)
         window = self._pixel_window(lo, hi)
         if window is None:
@@ -164,35 +179,38 @@ class Renderer:
         local = np.stack([z * rx[c], z * ry[r], z], axis=-1) - (lo + hi) / 2
         s, u = _face_coordinates(local, body.size / 2)
         depth[r, c] = z
-        layer.surface[window][r, c] = len(self.scene.background) + index
-        key = self.keys[len(self.scene.background) + index]
-        layer.reflectance[window][r, c] = sample_texture(body.texture, key, s, u)
+        layer.surface[window][r, c] = surface
+        layer.reflectance[window][r, c] = sample_texture(body.texture, self.keys[surface], s, u)
 
     def render(self, t: float) -> Frame:
         """The scene at time ``t`` (seconds)."""
         base = self._background(t) if self.camera_moves else self._static
         layer = _Layer(base.depth.copy(), base.surface.copy(), base.reflectance.copy())
-        for index in range(len(self.scene.objects)):
-            self._draw_body(layer, index, t)
-        n_planes = len(self.scene.background)
-        label = np.where(layer.surface >= n_planes, layer.surface - n_planes + 1, STATIC_SCENE)
+        for index, body in enumerate(self.scene.objects):
+            self._draw_box(layer, body, self.n_static + index, t)
+        first = self.n_static  # surface index of object 1
+        label = np.where(layer.surface >= first, layer.surface - first + 1, STATIC_SCENE)
         light, eps = self.scene.lighting, self.scene.sensor.log_eps
         intensity = light.gain * layer.reflectance**light.gamma
         return Frame(t, layer.depth, label.astype(np.int32), intensity, np.log(intensity + eps))
 
     def max_image_speed(self, frame: Frame) -> float:
-        """The fastest image motion (px/s): over the background's pixels when the camera
-        moves, and over each object's corners (visible or not, so entering objects count)."""
+        """The fastest image motion (px/s): over the static scene's pixels and its props'
+        corners when the camera moves, and over each object's corners (visible or not, so
+        entering objects and props count)."""
         cam, fastest = self.scene.camera, 0.0
+        boxes = [
+            (body, self.velocities[index + 1]) for index, body in enumerate(self.scene.objects)
+        ]
         if self.camera_moves:
             v = self.velocities[STATIC_SCENE]
             du = cam.fx * (v[0] - self.rx[None, :] * v[2]) / frame.depth
             dv = cam.fy * (v[1] - self.ry[:, None] * v[2]) / frame.depth
             speed = np.where(frame.label == STATIC_SCENE, np.hypot(du, dv), 0.0)
             fastest = float(speed.max())
-        for index, body in enumerate(self.scene.objects):
+            boxes += [(prop, v) for prop in self.scene.props]
+        for body, vel in boxes:
             corners = _corners(*self._box_bounds(body, frame.t))
-            vel = self.velocities[index + 1]
             z = corners[:, 2]
             du = cam.fx * (vel[0] - corners[:, 0] / z * vel[2]) / z
             dv = cam.fy * (vel[1] - corners[:, 1] / z * vel[2]) / z

@@ -4,6 +4,9 @@ Coordinates: the camera does not rotate, so world axes are camera axes (X right,
 Z forward along the optical axis); the camera's centre is at the origin at t = 0 and moves
 with ``camera.ego_velocity``. Positions and velocities in the YAML are in this world frame,
 in metres and m/s. Every mapping is checked for unknown keys so a typo fails loudly.
+
+The background is the static scene: infinite planes plus optional static ``props`` (boxes or
+patches at rest in the world, e.g. parked cars and posts), all one motion (ground-truth id 0).
 """
 
 from __future__ import annotations
@@ -18,7 +21,9 @@ from omegaconf import DictConfig, OmegaConf
 from spatialseg.recording import Camera
 
 __all__ = [
+    "NO_DEPTH_ERROR",
     "Body",
+    "DepthError",
     "Lighting",
     "Plane",
     "Scene",
@@ -75,6 +80,48 @@ class Body:
 
 
 @dataclass(frozen=True)
+class DepthError:
+    """Corruption of the output depth maps (what EDPA reads); the renderer's truth stays exact.
+
+    Each map becomes ``scale * depth * exp(e)`` with ``e`` a smooth Gaussian random field of
+    standard deviation ``sigma`` and correlation length ``correlation`` pixels; then the top
+    ``holes`` share of a second smooth field (correlation ``hole_size`` px) becomes unknown
+    (NaN) in blobs. ``shared``: both maps get the same field and holes (a fixed bias) instead
+    of independent draws. ``seed_offset`` picks another draw for the same run seed.
+    """
+
+    sigma: float
+    correlation: float
+    holes: float
+    hole_size: float
+    scale: float
+    shared: bool
+    seed_offset: int
+
+    @property
+    def active(self) -> bool:
+        """False when every setting is neutral: the depth maps are then left untouched."""
+        return self.sigma > 0 or self.holes > 0 or self.scale != 1.0
+
+
+#: No corruption: a scene without a ``depth_error`` block (the two lengths are then unused).
+NO_DEPTH_ERROR = DepthError(
+    sigma=0.0, correlation=1.0, holes=0.0, hole_size=1.0, scale=1.0, shared=False, seed_offset=0
+)
+
+#: Keys of a ``depth_error`` block, in YAML order.
+DEPTH_ERROR_KEYS = (
+    "sigma",
+    "correlation",
+    "holes",
+    "hole_size",
+    "scale",
+    "shared",
+    "seed_offset",
+)
+
+
+@dataclass(frozen=True)
 class SensorModel:
     """ESIM-style pixel model: log(I + log_eps) crossings of per-pixel thresholds, plus noise."""
 
@@ -96,7 +143,11 @@ class Lighting:
 
 @dataclass(frozen=True)
 class Scene:
-    """Everything the simulator needs: camera, ego-motion, sensor, lighting and surfaces."""
+    """Everything the simulator needs: camera, ego-motion, sensor, lighting and surfaces.
+
+    ``background`` holds the static planes and ``props`` the static boxes and patches; both
+    are the static scene. ``objects`` move. ``depth_error`` corrupts the output depth maps.
+    """
 
     name: str
     description: str
@@ -108,6 +159,8 @@ class Scene:
     lighting: Lighting
     background: tuple[Plane, ...]
     objects: tuple[Body, ...]
+    props: tuple[Body, ...] = ()
+    depth_error: DepthError = NO_DEPTH_ERROR
 
 
 class _Reader:
@@ -166,6 +219,13 @@ class _Reader:
             raise self._fail(key, f"must be finite, got {value!r}")
         return array
 
+    def flag(self, key: str) -> bool:
+        """A boolean (true or false, not 0 or 1)."""
+        value = self.data[key]
+        if not isinstance(value, bool):
+            raise self._fail(key, f"must be true or false, got {value!r}")
+        return value
+
     def text(self, key: str) -> str:
         """A non-empty string."""
         value = self.data[key]
@@ -209,9 +269,14 @@ def _plane(r: _Reader) -> Plane:
     return Plane(r.text("name"), normal / length, r.vector("point"), _texture(r.sub("texture")))
 
 
-def _body(r: _Reader) -> Body:
-    """Parse one moving object: a patch (size [w, h]) or a box (size [w, h, d])."""
-    r.only(("name", "shape", "size", "position", "velocity", "texture"))
+def _body(r: _Reader, *, moving: bool = True) -> Body:
+    """Parse one object: a patch (size [w, h]) or a box (size [w, h, d]).
+
+    A static prop (``moving=False``, a ``background`` entry with a ``shape``) has no
+    ``velocity`` key: it rests in the world, so it moves with the static scene.
+    """
+    keys = ("name", "shape", "size", "position", "velocity", "texture")
+    r.only(keys if moving else tuple(k for k in keys if k != "velocity"))
     shape = r.raw("shape")
     if shape not in SHAPES:
         raise r._fail("shape", f"must be one of {', '.join(SHAPES)}, got {shape!r}")
@@ -220,8 +285,41 @@ def _body(r: _Reader) -> Body:
         raise r._fail("size", f"must be positive, got {size.tolist()}")
     size = np.append(size, 0.0) if shape == "patch" else size
     position = r.vector("position")
-    return Body(
-        r.text("name"), shape, size, position, r.vector("velocity"), _texture(r.sub("texture"))
+    velocity = r.vector("velocity") if moving else np.zeros(3)
+    return Body(r.text("name"), shape, size, position, velocity, _texture(r.sub("texture")))
+
+
+def _background(r: _Reader, name: str) -> tuple[tuple[Plane, ...], tuple[Body, ...]]:
+    """Split ``background`` into infinite planes and static props (entries with a ``shape``)."""
+    entries = r.raw("background")
+    if not isinstance(entries, list) or not entries:
+        raise r._fail("background", "must be a non-empty list of planes (and static props)")
+    planes, props = [], []
+    for i, entry in enumerate(entries):
+        item = _Reader(entry, f"background[{i}]", name)
+        if "shape" in item.data:
+            props.append(_body(item, moving=False))
+        else:
+            planes.append(_plane(item))
+    if not planes:
+        raise r._fail("background", "needs at least one plane (props alone cannot fill the view)")
+    return tuple(planes), tuple(props)
+
+
+def _depth_error(r: _Reader) -> DepthError:
+    """Parse the ``depth_error`` block (every key required, as everywhere in a scene)."""
+    r.only(DEPTH_ERROR_KEYS)
+    holes = r.number("holes", low=0.0)
+    if holes >= 1:
+        raise r._fail("holes", f"must be a share of the pixels in [0, 1), got {holes}")
+    return DepthError(
+        sigma=r.number("sigma", low=0.0),
+        correlation=r.number("correlation", positive=True),
+        holes=holes,
+        hole_size=r.number("hole_size", positive=True),
+        scale=r.number("scale", positive=True),
+        shared=r.flag("shared"),
+        seed_offset=r.integer("seed_offset", low=0),
     )
 
 
@@ -277,14 +375,15 @@ def _check_clearance(scene: Scene) -> None:
     an object reaching the camera plane would shrink the adaptive render step towards zero.
     """
     times = (0.0, scene.duration)
-    for body in scene.objects:
+    labelled = [("prop", b) for b in scene.props] + [("object", b) for b in scene.objects]
+    for kind, body in labelled:
         near = [
             body.position[2] - body.size[2] / 2 + (body.velocity[2] - scene.ego_velocity[2]) * t
             for t in times
         ]
         if min(near) <= 0:
             raise ValueError(
-                f"scene '{scene.name}': object '{body.name}' reaches the camera plane (Z <= 0) "
+                f"scene '{scene.name}': {kind} '{body.name}' reaches the camera plane (Z <= 0) "
                 f"before t={scene.duration} s; shorten duration or start it farther away"
             )
     for plane in scene.background:
@@ -302,7 +401,9 @@ def parse_scene(scene_cfg: Mapping[str, Any]) -> Scene:
     name = str(data.get("name", "<unnamed>")) if isinstance(data, Mapping) else "<unnamed>"
     r = _Reader(data, "", name)
     keys = ("name", "kind", "description", "camera", "duration", "sensor", "render")
-    r.only((*keys, "lighting", "background", "objects"))
+    keys = (*keys, "lighting", "background", "objects")
+    # depth_error is optional (absent: no corruption) so older scene files stay valid
+    r.only((*keys, "depth_error") if "depth_error" in r.data else keys)
     if r.raw("kind") != "simulated":
         raise r._fail("kind", f"must be 'simulated' to simulate, got {r.raw('kind')!r}")
     camera, ego = _camera(r.sub("camera"))
@@ -313,15 +414,15 @@ def parse_scene(scene_cfg: Mapping[str, Any]) -> Scene:
         raise render._fail("max_pixel_step", f"must be a fraction of a pixel (<= 1), got {step}")
     lighting = r.sub("lighting")
     lighting.only(("gain", "gamma"))
-    planes, bodies = r.raw("background"), r.raw("objects")
-    if not isinstance(planes, list) or not planes:
-        raise r._fail("background", "must be a non-empty list of planes")
+    planes, props = _background(r, name)
+    bodies = r.raw("objects")
     if not isinstance(bodies, list):
         raise r._fail("objects", f"must be a list (may be empty), got {bodies!r}")
     objects = tuple(_body(_Reader(b, f"objects[{i}]", name)) for i, b in enumerate(bodies))
     names = [o.name for o in objects]
     if len(set(names)) != len(names):
         raise r._fail("objects", f"names must be unique, got {names}")
+    error = _depth_error(r.sub("depth_error")) if "depth_error" in r.data else NO_DEPTH_ERROR
     scene = Scene(
         name=r.text("name"),
         description=str(r.raw("description")),
@@ -333,10 +434,10 @@ def parse_scene(scene_cfg: Mapping[str, Any]) -> Scene:
         lighting=Lighting(
             lighting.number("gain", positive=True), lighting.number("gamma", positive=True)
         ),
-        background=tuple(
-            _plane(_Reader(p, f"background[{i}]", name)) for i, p in enumerate(planes)
-        ),
+        background=planes,
         objects=objects,
+        props=props,
+        depth_error=error,
     )
     _check_clearance(scene)
     return scene

@@ -9,7 +9,8 @@ import numpy as np
 
 from spatialseg.events import EventStream
 from spatialseg.recording import DepthMap, GroundTruth, Keyframe, Recording
-from spatialseg.simulate.render import STATIC_SCENE, Frame, Renderer
+from spatialseg.simulate.depth_error import corrupt_depth_maps
+from spatialseg.simulate.render import STATIC_SCENE, Frame, Renderer, surface_count
 from spatialseg.simulate.scene import Scene, parse_scene
 from spatialseg.simulate.sensor import EventChunk, Pixels
 
@@ -77,9 +78,10 @@ def simulate_scene(scene_cfg: Mapping[str, Any], *, seed: int, max_events: int |
 
     The window ends at the ``max_events``-th event or at the scene's ``duration``. Depth
     maps and keyframes are rendered at the first event (0 without events) and at the last
-    event (the end of the simulation without events). Ground-truth ids: 0 is the static
-    scene (an object only with a nonzero ego-velocity), 1..N the objects in YAML order,
-    -1 noise.
+    event (the end of the simulation without events); the scene's ``depth_error`` corrupts
+    these maps only (labels come from the exact renders). Ground-truth ids: 0 is the static
+    scene (planes and props; an object only with a nonzero ego-velocity), 1..N the objects
+    in YAML order, -1 noise.
     """
     if max_events is not None and (
         isinstance(max_events, bool)
@@ -89,7 +91,7 @@ def simulate_scene(scene_cfg: Mapping[str, Any], *, seed: int, max_events: int |
         raise ValueError(f"max_events must be a positive integer or None, got {max_events!r}")
     scene = parse_scene(scene_cfg)
     textures, thresholds = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
-    keys = textures.integers(0, 2**62, len(scene.background) + len(scene.objects))
+    keys = textures.integers(0, 2**62, surface_count(scene))
     renderer = Renderer(scene, keys)
     chunks, end = _run(scene, renderer, thresholds, max_events)
     keep = slice(0, max_events)
@@ -107,12 +109,13 @@ def simulate_scene(scene_cfg: Mapping[str, Any], *, seed: int, max_events: int |
     labels = np.concatenate([c.label for c in chunks] or [np.zeros(0, np.int64)])[keep]
     times = (events.t[0], events.t[-1]) if len(events) else (0.0, end)
     frames = [renderer.render(float(t)) for t in times]
+    depth_maps = tuple(
+        DepthMap(f.t, f.depth, source=f"simulated depth t={f.t:.6f}") for f in frames
+    )
     return Recording(
         events=events,
         camera=scene.camera,
-        depth_maps=tuple(
-            DepthMap(f.t, f.depth, source=f"simulated depth t={f.t:.6f}") for f in frames
-        ),
+        depth_maps=corrupt_depth_maps(depth_maps, scene.depth_error, seed=seed),
         keyframes=tuple(_keyframe(f) for f in frames),
         ground_truth=_ground_truth(scene, labels),
         name=scene.name,
