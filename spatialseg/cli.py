@@ -2,7 +2,8 @@
 
 A user mistake (unknown config key, malformed recording, empty window) ends the run with
 one ``error:`` line on stderr and exit status 2, never a traceback. Set
-``SPATIALSEG_DEBUG=1`` to get the full traceback instead.
+``SPATIALSEG_DEBUG=1`` to get the full traceback instead. A multirun runs every job; if any
+failed, it ends with one ``error: N of M jobs failed`` line and exit status 1.
 """
 
 from __future__ import annotations
@@ -96,9 +97,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 def _fail_job(cfg: DictConfig, exc: Exception) -> None:
     """Record a failed multirun job and report it, so the sweep goes on with the next job."""
-    from spatialseg.tracking import record_failure
+    from spatialseg.tracking import mark_job, record_failure
 
     record_failure(cfg, exc)
+    mark_job(exc)
     print(f"error: {exc}", file=sys.stderr)
     if not isinstance(exc, USER_ERRORS):
         log.error("job failed", exc_info=exc)
@@ -107,12 +109,16 @@ def _fail_job(cfg: DictConfig, exc: Exception) -> None:
 def guarded(task: Callable[[DictConfig], object]) -> Callable[[DictConfig], None]:
     """Wrap a Hydra task so a user mistake ends in one ``error:`` line and exit status 2.
 
-    In a multirun, a failing job (any exception) is recorded as failed and the sweep goes on.
+    In a multirun, a failing job (any exception) is recorded as failed and the sweep goes on;
+    every job leaves its outcome for the sweep's exit status (:func:`tracking.mark_job`).
     """
 
     def wrapper(cfg: DictConfig) -> None:
+        from spatialseg.tracking import mark_job
+
         try:
             task(cfg)
+            mark_job(None)
         except Exception as exc:
             if os.environ.get("SPATIALSEG_DEBUG"):
                 raise
@@ -135,6 +141,23 @@ def launch(task: Callable[[DictConfig], object], config_name: str) -> None:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
     hydra.main(version_base="1.3", config_path=path, config_name=config_name)(guarded(task))()
+    _exit_if_jobs_failed()
+
+
+def _exit_if_jobs_failed() -> None:
+    """After a multirun, exit with status 1 and one summary line if any job failed."""
+    from spatialseg.tracking import last_sweep
+
+    tally = last_sweep()
+    if tally is None or not tally.failed:
+        return
+    parent = f"; MLflow parent run {tally.parent_run_id}" if tally.parent_run_id else ""
+    print(
+        f"error: {tally.failed} of {tally.total} jobs failed; "
+        f"see {tally.jobs_dir}/*.failed{parent}",
+        file=sys.stderr,
+    )
+    sys.exit(1)
 
 
 def main() -> None:

@@ -41,7 +41,8 @@ def group_options(group: str) -> list[str]:
 
 
 def _groups() -> list[str]:
-    return sorted(p.name for p in conf_dir().iterdir() if p.is_dir())
+    """The project's config groups (``conf/hydra/`` holds Hydra's own launcher configs)."""
+    return sorted(p.name for p in conf_dir().iterdir() if p.is_dir() and p.name != "hydra")
 
 
 def _check_keys(composed: Any, reference: Any, path: str) -> None:

@@ -6,6 +6,10 @@ outputs are on disk before anything is sent, and a tracking failure only logs on
 line: tracking never loses a result. In a multirun, :class:`SweepCallback` creates the
 store, the experiment and a parent run before the jobs start and writes the parent's id to
 ``mlflow_parent.json`` in the sweep directory, where each job finds it.
+
+Each multirun job also leaves its outcome as a file in ``<sweep dir>/jobs/`` (tracking on or
+off, any launcher: joblib and Submitit jobs run in other processes); after the sweep,
+:class:`SweepCallback` counts them so the command can exit non-zero when a job failed.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import logging
 import os
 import time
 from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,11 +30,12 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["SweepCallback", "record", "record_failure"]
+__all__ = ["SweepCallback", "SweepTally", "last_sweep", "mark_job", "record", "record_failure"]
 
 log = logging.getLogger("spatialseg")
 
 PARENT_FILE = "mlflow_parent.json"
+JOBS_DIR = "jobs"  # in the sweep dir: <job num>.ok / <job num>.failed, one per finished job
 AXES = "xyz"
 MAX_BATCH = 1000  # metrics per log_batch call (MLflow's limit)
 MAX_PARAMS = 100  # params per log_batch call (MLflow's limit)
@@ -208,6 +214,51 @@ def record_failure(cfg: DictConfig, error: BaseException) -> None:
         _warn(exc)
 
 
+@dataclass(frozen=True)
+class SweepTally:
+    """How many jobs of a finished sweep failed, and where their error files are."""
+
+    failed: int
+    total: int
+    jobs_dir: Path
+    parent_run_id: str
+
+
+_last_sweep: SweepTally | None = None
+
+
+def last_sweep() -> SweepTally | None:
+    """The tally of the multirun this process launched (None before or without one)."""
+    return _last_sweep
+
+
+def mark_job(error: BaseException | None) -> None:
+    """In a multirun, leave this job's outcome in ``<sweep dir>/jobs/<num>.ok|failed``.
+
+    A file, because the job may run in another process or on another machine (joblib,
+    Submitit); the sweep's callback counts them afterwards. A failure file holds the job's
+    overrides and error, so the user can see which job failed and why.
+    """
+    hc = HydraConfig.get()
+    if hc.mode != RunMode.MULTIRUN:
+        return
+    folder = Path(hc.sweep.dir) / JOBS_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    status = "ok" if error is None else "failed"
+    info = {"num": hc.job.num, "overrides": list(hc.overrides.task), "dir": hc.runtime.output_dir}
+    if error is not None:
+        info["error"] = f"{type(error).__name__}: {error}"
+    (folder / f"{hc.job.num}.{status}").write_text(json.dumps(info) + "\n")
+
+
+def _tally(sweep_dir: Path, parent_run_id: str) -> SweepTally:
+    """Count the job outcome files of a sweep."""
+    folder = sweep_dir / JOBS_DIR
+    failed = len(list(folder.glob("*.failed")))
+    total = failed + len(list(folder.glob("*.ok")))
+    return SweepTally(failed, total, folder, parent_run_id)
+
+
 class SweepCallback(Callback):
     """Open the sweep's parent run before the jobs, close it after (FAILED if the sweep dies)."""
 
@@ -216,7 +267,12 @@ class SweepCallback(Callback):
         self._run_id = ""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        """Create the store, the experiment and the parent run; leave its id for the jobs."""
+        """Clear old job outcomes; create the store, experiment and parent run for the jobs."""
+        global _last_sweep
+        _last_sweep = None
+        jobs = Path(str(config.hydra.sweep.dir)) / JOBS_DIR
+        for stale in [*jobs.glob("*.ok"), *jobs.glob("*.failed")]:
+            stale.unlink()  # a rerun into the same sweep dir counts only its own jobs
         settings = _settings(config)
         if settings is None:
             return
@@ -234,9 +290,14 @@ class SweepCallback(Callback):
         atexit.register(self._close, "FAILED")
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        """Mark the parent run finished."""
+        """Count the failed jobs (for the exit status), tag and finish the parent run."""
+        global _last_sweep
+        _last_sweep = _tally(Path(str(config.hydra.sweep.dir)), self._run_id)
         if self._run_id:
             atexit.unregister(self._close)
+            with contextlib.suppress(Exception):
+                self._client.set_tag(self._run_id, "jobs_failed", str(_last_sweep.failed))
+                self._client.set_tag(self._run_id, "jobs_total", str(_last_sweep.total))
             self._close("FINISHED")
 
     def _close(self, status: str) -> None:

@@ -61,7 +61,7 @@ def test_parallel_multirun_has_a_parent_and_a_failed_child(tmp_path):
         f"hydra.sweep.dir={tmp_path / 'sweep'}",
         cwd=tmp_path,
     )
-    assert res.returncode == 0, res.stderr
+    assert res.returncode == 1, res.stderr
     assert "error: scene=recording needs a path" in res.stderr
     runs = _runs(tmp_path / "mlflow.db")
     (parent,) = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
