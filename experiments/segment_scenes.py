@@ -1,11 +1,13 @@
 """Accuracy of the spatial and planar models on every shipped simulated scene.
 
     python experiments/segment_scenes.py [--seeds 3] [--events 15000] [--out FILE.json]
+        [--models spatial planar spatial:volume.coordinates=metric]
 
 For each scene, model and seed: simulate the window (seeded), segment it with the default
 configuration, and report per-event accuracy, mean IoU, the relative velocity error of
 matched clusters (spatial model, m/s), and wall time. Prints a Markdown table of medians
-(min-max over seeds).
+(min-max over seeds). A model may carry config overrides after a colon, comma-separated
+(``spatial:volume.coordinates=metric,clustering.max_iterations=20``).
 """
 
 from __future__ import annotations
@@ -25,10 +27,14 @@ from spatialseg.scenes import load_scene
 N_CLUSTERS = {"three": 3}
 
 
-def run_one(scene: str, model: str, seed: int, events: int) -> dict:
-    """Simulate and segment one scene with one model; return its metrics and time."""
+def run_one(scene: str, variant: str, seed: int, events: int) -> dict:
+    """Simulate and segment one scene with one model variant; return its metrics and time."""
     k = N_CLUSTERS.get(scene, 2)
-    cfg = compose_config(f"+scene={scene}", f"model={model}", f"n_clusters={k}", f"seed={seed}")
+    model, _, extra = variant.partition(":")
+    overrides = [o for o in extra.split(",") if o]
+    cfg = compose_config(
+        f"+scene={scene}", f"model={model}", f"n_clusters={k}", f"seed={seed}", *overrides
+    )
     rec = load_scene(cfg["scene"], seed=seed, window_events=events)
     start = time.perf_counter()
     seg = segment_recording(rec, cfg, instantiate(cfg["optimizer"]), seed=seed)
@@ -45,7 +51,7 @@ def run_one(scene: str, model: str, seed: int, events: int) -> dict:
     )
     return {
         "scene": scene,
-        "model": model,
+        "model": variant,
         "seed": seed,
         "accuracy": m["accuracy"],
         "mean_iou": m["mean_iou"],

@@ -207,15 +207,24 @@ def lift(
     return Lifted(points=points, t=ev.t[valid].copy(), valid=valid, depth=depth)
 
 
-def voxel_size(points: np.ndarray, camera: Camera, *, xy_scale: float, z_bins: int) -> np.ndarray:
-    """Voxel size (3,) in metres for the volume of warped events.
+def voxel_size(
+    points: np.ndarray,
+    camera: Camera,
+    *,
+    xy_scale: float,
+    z_bins: int,
+    coordinates: str = "metric",
+) -> np.ndarray:
+    """Voxel size (3,) of the volume of warped events, in the grid's coordinates.
 
-    X and Y: ``xy_scale`` pixel footprints at the median depth (``median(Z)/fx``, ``/fy``),
-    so one voxel is about ``xy_scale`` pixels where most events are. Z: the depth extent of
-    the points over ``z_bins``, but never finer than the smaller lateral size. Decision: the
-    floor keeps a flat scene (zero extent) valid, and finer Z voxels buy nothing because an
-    estimated depth is far less precise than a pixel position; so ``z_bins`` is an upper
-    bound on the number of depth bins covering the points.
+    ``metric`` (metres): X and Y are ``xy_scale`` pixel footprints at the median depth
+    (``median(Z)/fx``, ``/fy``), so one voxel is about ``xy_scale`` pixels where most events
+    are; Z is the depth extent of the points over ``z_bins``, never finer than the smaller
+    lateral size. ``image`` (pixels, pixels, 1/m): ``xy_scale`` pixels, and the inverse-depth
+    extent over ``z_bins``, never finer than the inverse-depth step of a lateral voxel at the
+    median depth (``xy_scale median(1/Z) / f``). Decision: the floor keeps a flat scene (zero
+    extent) valid, and finer depth voxels buy nothing because an estimated depth is far less
+    precise than a pixel position; so ``z_bins`` is an upper bound on the number of depth bins.
     """
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts):
@@ -228,6 +237,13 @@ def voxel_size(points: np.ndarray, camera: Camera, *, xy_scale: float, z_bins: i
         raise ValueError(f"xy_scale must be a positive number, got {xy_scale}")
     if int(z_bins) != z_bins or z_bins < 1:
         raise ValueError(f"z_bins must be an integer >= 1, got {z_bins}")
+    if coordinates == "image":
+        inverse = 1.0 / pts[:, 2]
+        floor = xy_scale * float(np.median(inverse)) / max(camera.fx, camera.fy)
+        step = max(float(inverse.max() - inverse.min()) / int(z_bins), floor)
+        return np.array([xy_scale, xy_scale, step])
+    if coordinates != "metric":
+        raise ValueError(f"volume.coordinates must be 'image' or 'metric', got {coordinates!r}")
     z = pts[:, 2]
     median = float(np.median(z))
     sx = xy_scale * median / camera.fx

@@ -10,7 +10,10 @@ The per-event system of the (up to) three constraints is therefore often rank-de
 its minimum-norm solution is the event's 3-D *normal flow*. k-means over the normal flows
 gives a first partition, which a k-means on the constraints themselves then refines (see
 :func:`_refine_clusters`). The image-plane model (``dim = 2``: points (x, y, 0) in pixels)
-uses S1 alone and gives (vx, vy, 0) in px/s.
+uses S1 alone and gives (vx, vy, 0) in px/s. Given each event's ``lift``, the derivative of
+its image velocity with respect to a 3-D velocity, the S1 constraints are re-expressed on
+the 3-D velocity (:func:`lift_constraints`), so that events at different depths sharing one
+3-D motion (a translating camera's static scene) share one cluster.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from sklearn.cluster import KMeans
 
 from spatialseg.grid import VoxelGrid
 
-__all__ = ["PLANES", "InitResult", "initial_motions", "time_surfaces"]
+__all__ = ["PLANES", "InitResult", "initial_motions", "lift_constraints", "time_surfaces"]
 
 #: The axis pairs (u, v) of the time surfaces S1 = (X, Y), S2 = (Y, Z), S3 = (Z, X).
 PLANES = ((0, 1), (1, 2), (2, 0))
@@ -212,7 +215,7 @@ def _constraints(
     for k, (g, ok) in enumerate(zip(gradients, valid, strict=True)):
         u, v = PLANES[k]
         norm = np.hypot(g[:, 0], g[:, 1])
-        use = ok & np.isfinite(norm) & (norm * max_speed >= 1.0)
+        use = ok & np.isfinite(norm) & (norm > 0) & (norm >= 1.0 / max_speed)
         a[use, k, u] = g[use, 0] / norm[use]
         a[use, k, v] = g[use, 1] / norm[use]
         b[use, k] = 1.0 / norm[use]
@@ -272,6 +275,26 @@ def _refine_clusters(
         if total >= best:
             return centres
         best, labels = total, new_labels
+
+
+def lift_constraints(
+    a: np.ndarray, b: np.ndarray, lift: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """S1 constraints ``n . (u', v') = s`` (row 0 of ``a``, px/s) as constraints on the 3-D
+    velocity: ``(n^T L) . theta = s`` with ``L`` (E, 2, 3) the event's ``d(u', v')/dtheta``,
+    scaled to a unit row so every row weighs equally in m/s. Zero rows stay zero.
+
+    For a pinhole camera ``L = [[fx, 0, -(u - cx)], [0, fy, -(v - cy)]] / Z``: the image speed
+    of a static point falls with its depth while its 3-D velocity does not, and motion along
+    the optical axis is observed through the expansion ``(u - cx) / Z``.
+    """
+    rows = np.einsum("ei,eij->ej", a[:, 0, :2], lift)
+    norm = np.linalg.norm(rows, axis=1)
+    use = norm > 0
+    lifted_a, lifted_b = np.zeros_like(a), np.zeros_like(b)
+    lifted_a[use, 0] = rows[use] / norm[use, None]
+    lifted_b[use, 0] = b[use, 0] / norm[use]
+    return lifted_a, lifted_b
 
 
 def _spread(centre: np.ndarray, radius: float, k: int, dim: int) -> np.ndarray:
@@ -337,6 +360,7 @@ def initial_motions(
     max_events: int,
     n_init: int,
     min_r2: float,
+    lift: np.ndarray | None = None,
 ) -> InitResult:
     """Initial velocities of ``n_clusters`` motions from time surfaces + k-means.
 
@@ -349,6 +373,9 @@ def initial_motions(
     (distinct) flows than ``n_clusters`` the velocities are spread around the mean valid
     flow (zero if none) at one voxel per window duration, the smallest velocity difference
     the volume resolves, and ``fallback`` is True.
+
+    ``lift`` (M, 2, 3; image-plane points, ``dim = 2``) makes the velocities 3-D, in the units
+    of the lift (m/s): see :func:`lift_constraints`. ``max_speed`` bounds them in those units.
     """
     points = np.asarray(points, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
@@ -358,6 +385,8 @@ def initial_motions(
     )
     if dim not in (2, 3):
         raise ValueError(f"dim must be 2 (image plane) or 3 (space), got {dim}")
+    if lift is not None and (dim != 2 or np.shape(lift) != (len(points), 2, 3)):
+        raise ValueError(f"lift must be M x 2 x 3 for image-plane points, got {np.shape(lift)}")
     cells = _cells(points, grid)
     m = len(points)
     sample = np.sort(np.random.default_rng(seed).choice(m, min(m, int(max_events)), False))
@@ -370,9 +399,11 @@ def initial_motions(
         radius=int(radius),
         min_points=min_points,
         max_condition=max_condition,
-        max_speed=max_speed,
+        max_speed=max_speed if lift is None else np.inf,  # lifted: bounded after the lift
         min_r2=min_r2,
     )
+    if lift is not None:
+        a, b = lift_constraints(a, b, lift[sample])
     sample_flows, ok = _normal_flows(a, b, max_condition=max_condition, max_speed=max_speed)
     flows = np.full((m, 3), np.nan)
     flows[sample[ok]] = sample_flows[ok]
@@ -380,7 +411,9 @@ def initial_motions(
     if len(np.unique(good, axis=0)) < n_clusters:
         centre = good.mean(axis=0) if len(good) else np.zeros(3)
         step = float(grid.voxel_size[:dim].min() / (t.max() - t.min()))
-        spread = _spread(centre, step, int(n_clusters), dim)
+        if lift is not None:  # a voxel per window at the median event's scale, in 3-D
+            step /= float(np.median(np.linalg.norm(lift[:, 0], axis=1)))
+        spread = _spread(centre, step, int(n_clusters), 2 if lift is None else 3)
         return InitResult(spread, flows, len(good), True, np.full(m, -1))
     kmeans = KMeans(int(n_clusters), n_init=int(n_init), random_state=seed).fit(good)
     thetas = _refine_clusters(a[ok], b[ok], kmeans.labels_, kmeans.cluster_centers_, max_condition)

@@ -23,9 +23,9 @@ from spatialseg.clustering import (
     initial_memberships,
     iterative_clustering,
 )
-from spatialseg.grid import VoxelGrid, grid_around
+from spatialseg.grid import VoxelGrid, grid_around, project_jacobian
 from spatialseg.objectives import make_objective
-from spatialseg.recording import Recording
+from spatialseg.recording import Camera, Recording
 from spatialseg.volume import VolumeObjective
 
 __all__ = [
@@ -149,19 +149,22 @@ def _image_flow_init(
     params: dict[str, Any],
     *,
     seed: int,
-    max_displacement: float,
+    bounds: np.ndarray,
 ) -> motion_init.InitResult:
-    """Initial motions from image-plane flow (time surface S1 over pixels), lifted to 3-D.
+    """Initial motions from the image-plane time surface S1, its flow constraints lifted to
+    3-D velocities by each event's depth (:func:`motion_init.lift_constraints`).
 
     Decision: the three-plane surfaces resolve depth motion only when objects cross several
-    depth bins per window, which fails on wide-depth scenes; the image-plane flow is robust.
-    Each cluster's image velocity (px/s) becomes ``(u' Z / fx, v' Z / fy, 0)`` at the median
-    depth Z of its events; the labels are the image-plane flow clusters.
+    depth bins per window, which fails on wide-depth scenes; the image surface is robust,
+    and lifting each event by its own depth makes a translating camera's static scene, whose
+    image speed varies with depth, one motion instead of one per depth layer.
     """
     events = window.events.select(prepared.valid)
     planar = _planar_points(replace(window, events=events, ground_truth=None), 1.0)
-    bounds = search_bounds(planar, max_displacement)
-    init = motion_init.initial_motions(
+    cam = window.camera
+    intrinsics = np.array([cam.fx, cam.fy, cam.cx, cam.cy])
+    lift = project_jacobian(prepared.points, intrinsics)[:, :2]
+    return motion_init.initial_motions(
         planar.points,
         planar.t,
         planar.grid,
@@ -169,16 +172,9 @@ def _image_flow_init(
         seed=seed,
         dim=2,
         max_speed=float(bounds[:, 1].max()),
+        lift=lift,
         **params,
     )
-    depth = prepared.points[:, 2]
-    thetas = np.zeros((k, 3))
-    cam = window.camera
-    for j in range(k):
-        members = init.labels == j
-        z = float(np.median(depth[members] if members.any() else depth))
-        thetas[j, :2] = init.thetas[j, :2] * z / np.array([cam.fx, cam.fy])
-    return replace(init, thetas=thetas)
 
 
 def initialise(
@@ -197,17 +193,17 @@ def initialise(
     discarded."""
     params = dict(cfg["init"])
     method = params.pop("method")
-    max_displacement = float(cfg["clustering"]["max_displacement"])
     if method == "image_flow" and prepared.dim == 3:
-        return _image_flow_init(
-            window, prepared, k, params, seed=seed, max_displacement=max_displacement
-        )
+        return _image_flow_init(window, prepared, k, params, seed=seed, bounds=bounds)
     if method not in ("image_flow", "time_surface"):
         raise ValueError(f"init.method must be 'image_flow' or 'time_surface', got {method!r}")
+    grid = prepared.grid
+    if grid.projection is not None:  # the paper's three planes are metric
+        grid = _volume_grid(prepared.points, window.camera, cfg, "metric")
     return motion_init.initial_motions(
         prepared.points,
         prepared.t,
-        prepared.grid,
+        grid,
         k,
         seed=seed,
         dim=prepared.dim,
@@ -233,27 +229,53 @@ def prepare(window: Recording, cfg: Mapping[str, Any]) -> Prepared:
         lifted.points[:, 2], gap=float(vol["depth_gap"]), min_share=vol["min_band_share"]
     )
     points = lifted.points[dense]
-    size = edpa.voxel_size(
-        points, window.camera, xy_scale=float(model["xy_scale"]), z_bins=int(vol["z_bins"])
-    )
-    grid = grid_around(points, size, float(vol["margin"]), int(vol["max_voxels"]))
+    grid = _volume_grid(points, window.camera, cfg)
     valid = lifted.valid.copy()
     valid[np.flatnonzero(valid)[~dense]] = False
     extent = _search_extent(lifted.points, grid, float(vol["margin"]))
     return Prepared(points, lifted.t[dense], valid, grid, 3, "m/s", extent)
 
 
+def _volume_grid(
+    points: np.ndarray, camera: Camera, cfg: Mapping[str, Any], coordinates: str | None = None
+) -> VoxelGrid:
+    """The spatial model's voxel grid around ``points`` in ``volume.coordinates`` (or
+    ``coordinates``): ``image`` (pixels and inverse depth, default) or ``metric`` (metres).
+
+    Decision: on an image grid a voxel has the same footprint in the image at every depth,
+    so near and far events are equally sharp when compensated, and an object moving in
+    depth is sharpened by its expansion in the image, resolved to a pixel, instead of by
+    its few depth bins only (``docs/volume.md`` has the measurements).
+    """
+    vol = cfg["volume"]
+    coordinates = coordinates or str(vol["coordinates"])
+    size = edpa.voxel_size(
+        points,
+        camera,
+        xy_scale=float(cfg["model"]["xy_scale"]),
+        z_bins=int(vol["z_bins"]),
+        coordinates=coordinates,
+    )
+    projection = None
+    if coordinates == "image":
+        projection = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+    return grid_around(points, size, float(vol["margin"]), int(vol["max_voxels"]), projection)
+
+
 def _search_extent(all_points: np.ndarray, grid: VoxelGrid, margin: float) -> np.ndarray:
-    """Per axis, the larger of the grid's extent and all lifted points' (``margin`` added).
+    """Per axis (metres), the larger of a metric grid's extent and all lifted points' extent
+    (``margin`` added).
 
     Decision: events left out of the grid (sparse depth bands) still count for the search
     box, so trimming the grid makes the voxels finer without narrowing the velocities the
     optimiser may try. Otherwise ``approach``'s grid, trimmed to 0.9 m deep, would cap vz
-    at 1.1 m/s, below the approaching box's 2.5 m/s. Without trimming this is the grid's
-    extent, as before.
+    at 1.1 m/s, below the approaching box's 2.5 m/s. An image grid is not in metres, so
+    there only the points count.
     """
-    span = all_points.max(axis=0) - all_points.min(axis=0)
-    return np.maximum(np.asarray(grid.shape, float) * grid.voxel_size, (1 + 2 * margin) * span)
+    span = (1 + 2 * margin) * (all_points.max(axis=0) - all_points.min(axis=0))
+    if grid.projection is not None:
+        return span
+    return np.maximum(np.asarray(grid.shape, float) * grid.voxel_size, span)
 
 
 def search_bounds(prepared: Prepared, max_displacement: float) -> np.ndarray:
@@ -338,7 +360,7 @@ def segment_window(
         target=None if ccfg["target"] is None else float(ccfg["target"]),
     )
     init_p = initial_memberships(
-        prepared.points,
+        prepared.grid.coordinates(prepared.points),
         prepared.grid.voxel_size,
         init.labels,
         k,

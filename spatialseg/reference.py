@@ -49,9 +49,14 @@ OBJECTIVES: dict[str, Callable[[np.ndarray], tuple[float, np.ndarray]]] = {
 def warped_coordinates(
     points: np.ndarray, dt: np.ndarray, theta: np.ndarray, grid: VoxelGrid
 ) -> np.ndarray:
-    """Continuous voxel coordinates (N x 3) of ``x_k - dt_k theta``."""
-    warped = np.asarray(points, np.float64) - np.outer(np.asarray(dt, np.float64), theta)
-    return grid.continuous_index(warped)
+    """Continuous voxel coordinates (N x 3) of ``x_k - dt_k theta`` (-2, outside the grid,
+    for a point behind the camera of a projective grid)."""
+    return np.nan_to_num(grid.continuous_index(_warped(points, dt, theta)), nan=-2.0)
+
+
+def _warped(points: np.ndarray, dt: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """The warped points ``x_k - dt_k theta`` (N x 3)."""
+    return np.asarray(points, np.float64) - np.outer(np.asarray(dt, np.float64), theta)
 
 
 def corners(coords: np.ndarray, shape: tuple[int, int, int]):
@@ -137,15 +142,17 @@ def value_and_grad(
     objective: str = "variance",
     blur_sigma: float = 0.0,
 ) -> tuple[float, np.ndarray]:
-    """The objective and ``dO/dtheta = sum_k w_k sum_corners G dW/dc (-dt_k / voxel_size)``."""
+    """The objective and ``dO/dtheta = sum_k w_k sum_corners G dW/dc dc/dtheta`` with
+    ``dc/dtheta = -dt_k (dq/dp)(x'_k) / voxel_size`` (``q`` the grid's coordinates)."""
     n_events = len(dt)
     w = np.ones(n_events) if weights is None else np.asarray(weights, np.float64)
     v = volume(points, dt, theta, grid, w)
     value_, g = objective_and_derivative(v, objective, blur_sigma)
     index, _, dweight = corners(warped_coordinates(points, dt, theta, grid), grid.shape)
     dvalue_dc = np.einsum("cn,cna->na", g.ravel()[index], dweight)
-    dc_dtheta = -np.asarray(dt, np.float64)[:, None] / grid.voxel_size
-    return value_, np.sum((w[:, None] * dvalue_dc) * dc_dtheta, axis=0)
+    jacobian = grid.jacobian(_warped(points, dt, theta)) / grid.voxel_size[:, None]
+    dc_dtheta = -np.asarray(dt, np.float64)[:, None, None] * np.nan_to_num(jacobian)
+    return value_, np.einsum("n,na,nab->b", w, dvalue_dc, dc_dtheta)
 
 
 def sample(

@@ -78,14 +78,45 @@ def _axis(c: float, n: int):
 
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
-def _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy):
-    """Warp event ``k``: whether it touches the grid, the flat index of its cell, and its axes."""
+def _warped(points, dt, k, theta, proj):
+    """Event ``k`` warped by ``theta``, in the grid's coordinates ``q``; False behind the camera.
+
+    ``proj`` is None for a grid over the points themselves (numba compiles that branch
+    away), or ``(fx, fy, cx, cy)`` for a grid over pixels and inverse depth.
+    """
     t = dt[k]
-    cx = (points[k, 0] - t * theta[0] - origin[0]) * inv_size[0]
-    cy = (points[k, 1] - t * theta[1] - origin[1]) * inv_size[1]
-    cz = (points[k, 2] - t * theta[2] - origin[2]) * inv_size[2]
+    x = points[k, 0] - t * theta[0]
+    y = points[k, 1] - t * theta[1]
+    z = points[k, 2] - t * theta[2]
+    if proj is None:
+        return True, x, y, z
+    if not z > 0.0:
+        return False, 0.0, 0.0, 0.0
+    inverse = 1.0 / z
+    return True, proj[0] * x * inverse + proj[2], proj[1] * y * inverse + proj[3], inverse
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _to_theta(points, dt, k, theta, proj, inv_size, gx, gy, gz):
+    """A derivative along the voxel coordinates of event ``k``'s warped position, as one along
+    the point ``p' = p - dt theta`` (times ``-dt``: the caller's): ``(dq/dp')^T g / size``."""
+    gx, gy, gz = gx * inv_size[0], gy * inv_size[1], gz * inv_size[2]
+    if proj is None:
+        return gx, gy, gz
+    _, qx, qy, inverse = _warped(points, dt, k, theta, proj)
+    tz = -inverse * (gx * (qx - proj[2]) + gy * (qy - proj[3]) + gz * inverse)
+    return gx * proj[0] * inverse, gy * proj[1] * inverse, tz
+
+
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
+def _locate(points, dt, k, theta, origin, inv_size, proj, shape, sx, sy):
+    """Warp event ``k``: whether it touches the grid, the flat index of its cell, and its axes."""
+    ok, qx, qy, qz = _warped(points, dt, k, theta, proj)
+    cx = (qx - origin[0]) * inv_size[0]
+    cy = (qy - origin[1]) * inv_size[1]
+    cz = (qz - origin[2]) * inv_size[2]
     nx, ny, nz = shape
-    inside = (cx > -1.0) & (cx < nx) & (cy > -1.0) & (cy < ny) & (cz > -1.0) & (cz < nz)
+    inside = ok & (cx > -1.0) & (cx < nx) & (cy > -1.0) & (cy < ny) & (cz > -1.0) & (cz < nz)
     if not inside:
         cx = cy = cz = 0.0
     ax, ay, az = _axis(cx, nx), _axis(cy, ny), _axis(cz, nz)
@@ -131,7 +162,7 @@ def _interpolate(flat, b, sx, sy, fx, fy, fz):
 
 
 @njit(cache=True, fastmath=_FASTMATH)
-def _scatter(points, dt, weights, theta, origin, inv_size, padded, cells, fracs) -> float:
+def _scatter(points, dt, weights, theta, origin, inv_size, proj, padded, cells, fracs) -> float:
     """Vote every event into ``padded`` (zero on entry); return the in-grid mass ``sum V``.
 
     Caches each voting event's cell and fractions in ``cells``/``fracs`` for the passes that
@@ -144,7 +175,9 @@ def _scatter(points, dt, weights, theta, origin, inv_size, padded, cells, fracs)
         w = np.float64(weights[k])
         cached = -1
         if w != 0.0:
-            inside, b, ax, ay, az = _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy)
+            inside, b, ax, ay, az = _locate(
+                points, dt, k, theta, origin, inv_size, proj, shape, sx, sy
+            )
             if inside:
                 mass += _splat(flat, b, sx, sy, w, ax, ay, az)
                 if ax[1] * ax[2] * ay[1] * ay[2] * az[1] * az[2] == 1.0:
@@ -155,7 +188,7 @@ def _scatter(points, dt, weights, theta, origin, inv_size, padded, cells, fracs)
 
 
 @njit(cache=True, fastmath=_FASTMATH)
-def _clear(points, dt, weights, theta, origin, inv_size, padded, cells) -> None:
+def _clear(points, dt, weights, theta, origin, inv_size, proj, padded, cells) -> None:
     """Zero ``padded`` after :func:`_scatter`: by the events' cells when cheaper than a memset."""
     flat, shape, sx, sy = _layout(padded)
     if 8 * dt.size >= flat.size:
@@ -166,7 +199,9 @@ def _clear(points, dt, weights, theta, origin, inv_size, padded, cells) -> None:
         if b < 0:
             if weights[k] == 0:
                 continue
-            inside, b, _, _, _ = _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy)
+            inside, b, _, _, _ = _locate(
+                points, dt, k, theta, origin, inv_size, proj, shape, sx, sy
+            )
             if not inside:
                 continue
         for corner in (b, b + 1, b + sy, b + sy + 1):
@@ -176,7 +211,7 @@ def _clear(points, dt, weights, theta, origin, inv_size, padded, cells) -> None:
 
 @njit(cache=True, fastmath=_FASTMATH)
 def _weighted_sample_sum(
-    points, dt, weights, theta, origin, inv_size, padded, cells, fracs
+    points, dt, weights, theta, origin, inv_size, proj, padded, cells, fracs
 ) -> float:
     """``sum_k w_k V(x'_k)`` after :func:`_scatter`: it equals ``sum V^2``, without a grid pass."""
     flat, shape, sx, sy = _layout(padded)
@@ -189,7 +224,9 @@ def _weighted_sample_sum(
         else:
             if w == 0.0:
                 continue
-            inside, b, ax, ay, az = _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy)
+            inside, b, ax, ay, az = _locate(
+                points, dt, k, theta, origin, inv_size, proj, shape, sx, sy
+            )
             if not inside:
                 continue
             value = _interpolate(flat, b, sx, sy, ax[0], ay[0], az[0])[0]
@@ -198,24 +235,28 @@ def _weighted_sample_sum(
 
 
 @njit(cache=True, fastmath=_FASTMATH)
-def _gather_grad(points, dt, weights, theta, origin, inv_size, padded, cells, fracs):
+def _gather_grad(points, dt, weights, theta, origin, inv_size, proj, padded, cells, fracs):
     """One gather pass over ``G`` (padded, zero halo) after :func:`_scatter`: ``(S, A, B)``.
 
-    ``S = sum_k w_k G(x'_k)``, ``A_a = sum_k w_k dt_k dG(x'_k)/dc_a`` and ``B_a`` the same for
-    the in-grid mass of each event (non-zero only at the border), so that for
-    ``dO/dV = slope V + offset`` the gradient is ``-(slope A + offset B) / voxel_size``.
+    ``S = sum_k w_k G(x'_k)``, ``A = sum_k w_k dt_k J_k^T grad_c G(x'_k)`` with ``J_k`` the
+    derivative of the voxel coordinates along the warped point (:func:`_to_theta`), and
+    ``B`` the same for the in-grid mass of each event (non-zero only at the border), so that
+    for ``dO/dV = slope V + offset`` the gradient is ``-(slope A + offset B)``.
     """
     flat, shape, sx, sy = _layout(padded)
     s = ax_ = ay_ = az_ = bx_ = by_ = bz_ = 0.0
     for k in range(dt.size):
         w = np.float64(weights[k])
         b = cells[k]
+        wdt = w * dt[k]
         if b >= 0:  # interior cell: all corners in the grid, mass constant
             value, dx, dy, dz = _interpolate(flat, b, sx, sy, fracs[k, 0], fracs[k, 1], fracs[k, 2])
         else:
             if w == 0.0:
                 continue
-            inside, b, ax, ay, az = _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy)
+            inside, b, ax, ay, az = _locate(
+                points, dt, k, theta, origin, inv_size, proj, shape, sx, sy
+            )
             if not inside:
                 continue
             (fx, mx0, mx1, kx), (fy, my0, my1, ky), (fz, mz0, mz1, kz) = ax, ay, az
@@ -224,20 +265,30 @@ def _gather_grad(points, dt, weights, theta, origin, inv_size, padded, cells, fr
             ex = (1.0 - fx) * mx0 + fx * mx1
             ey = (1.0 - fy) * my0 + fy * my1
             ez = (1.0 - fz) * mz0 + fz * mz1
-            wdt = w * dt[k]
-            bx_ += wdt * kx * (mx1 - mx0) * ey * ez
-            by_ += wdt * ky * (my1 - my0) * ex * ez
-            bz_ += wdt * kz * (mz1 - mz0) * ex * ey
+            mass = _to_theta(
+                points,
+                dt,
+                k,
+                theta,
+                proj,
+                inv_size,
+                kx * (mx1 - mx0) * ey * ez,
+                ky * (my1 - my0) * ex * ez,
+                kz * (mz1 - mz0) * ex * ey,
+            )
+            bx_ += wdt * mass[0]
+            by_ += wdt * mass[1]
+            bz_ += wdt * mass[2]
         s += w * value
-        wdt = w * dt[k]
-        ax_ += wdt * dx
-        ay_ += wdt * dy
-        az_ += wdt * dz
+        jx, jy, jz = _to_theta(points, dt, k, theta, proj, inv_size, dx, dy, dz)
+        ax_ += wdt * jx
+        ay_ += wdt * jy
+        az_ += wdt * jz
     return s, np.array([ax_, ay_, az_]), np.array([bx_, by_, bz_])
 
 
 @njit(cache=True, fastmath=_FASTMATH)
-def _sample(points, dt, theta, origin, inv_size, padded, cells, fracs, out) -> None:
+def _sample(points, dt, theta, origin, inv_size, proj, padded, cells, fracs, out) -> None:
     """``out[k]``: the padded volume interpolated trilinearly at event ``k``'s warped position."""
     flat, shape, sx, sy = _layout(padded)
     for k in range(dt.size):
@@ -245,18 +296,20 @@ def _sample(points, dt, theta, origin, inv_size, padded, cells, fracs, out) -> N
         if b >= 0:
             out[k] = _interpolate(flat, b, sx, sy, fracs[k, 0], fracs[k, 1], fracs[k, 2])[0]
         else:
-            inside, b, ax, ay, az = _locate(points, dt, k, theta, origin, inv_size, shape, sx, sy)
+            inside, b, ax, ay, az = _locate(
+                points, dt, k, theta, origin, inv_size, proj, shape, sx, sy
+            )
             out[k] = _interpolate(flat, b, sx, sy, ax[0], ay[0], az[0])[0] if inside else 0.0
 
 
 @njit(cache=True, parallel=True)
-def _batch_moments(points, dt, weights, thetas, origin, inv_size, padded, cells, fracs, out):
+def _batch_moments(points, dt, weights, thetas, origin, inv_size, proj, padded, cells, fracs, out):
     """``out[i] = (sum V, sum V^2)`` at each ``thetas[i]``; one workspace per parallel chunk."""
     n = thetas.shape[0]
     chunks = padded.shape[0]
     for c in prange(chunks):
         for i in range(c, n, chunks):
-            args = (points, dt, weights, thetas[i], origin, inv_size, padded[c])
+            args = (points, dt, weights, thetas[i], origin, inv_size, proj, padded[c])
             out[i, 0] = _scatter(*args, cells[c], fracs[c])
             out[i, 1] = _weighted_sample_sum(*args, cells[c], fracs[c])
             _clear(*args, cells[c])
@@ -323,6 +376,7 @@ class VolumeObjective:
         self._weights = np.ones(len(self._dt), dtype=self.dtype)
         self._origin = grid.origin.copy()
         self._inv_size = 1.0 / grid.voxel_size
+        self._proj = None if grid.projection is None else grid.projection.copy()
         self._padded, self._cells, self._fracs = self._workspace()
         self._fused = isinstance(objective, MomentObjective) and not objective.smooths
         self._scratch: tuple[np.ndarray, np.ndarray] | None = None
@@ -336,7 +390,8 @@ class VolumeObjective:
         if not len(points):
             return np.zeros(0, dtype=np.intp)
         shape = np.array(grid.shape)
-        nearest = np.clip(np.rint(grid.continuous_index(points)), 0, shape - 1).astype(np.intp)
+        index = np.nan_to_num(grid.continuous_index(points))  # NaN: behind the camera
+        nearest = np.clip(np.rint(index), 0, shape - 1).astype(np.intp)
         return np.argsort(np.ravel_multi_index(nearest.T, grid.shape), kind="stable")
 
     def _zero_padded(self, *count: int) -> np.ndarray:
@@ -367,7 +422,15 @@ class VolumeObjective:
     def _args(self, theta: np.ndarray) -> tuple:
         """The kernels' event and grid arguments at ``theta`` (validated: finite 3-vector)."""
         theta = _finite_array("theta", theta, (3,), np.float64)
-        return self._points, self._dt, self._weights, theta, self._origin, self._inv_size
+        return (
+            self._points,
+            self._dt,
+            self._weights,
+            theta,
+            self._origin,
+            self._inv_size,
+            self._proj,
+        )
 
     def _scratch_volumes(self) -> tuple[np.ndarray, np.ndarray]:
         """Two padded buffers (zero halo) for the smoothed volume and ``G``, made once."""
@@ -409,7 +472,7 @@ class VolumeObjective:
                 value, slope, offset = self.objective.from_moments(
                     mass, total_sq, self.grid.n_voxels
                 )
-                return value, -(slope * slopes + offset * mass_slopes) * self._inv_size
+                return value, -(slope * slopes + offset * mass_slopes)
             smoothed, derivative = self._smoothed(), self._scratch_volumes()[1]
             value = self.objective.value_and_derivative(smoothed, self._interior(derivative))
             if self.objective.smooths:
@@ -417,7 +480,7 @@ class VolumeObjective:
                 self.objective.smooth(self._interior(derivative), out=self._interior(blurred))
                 derivative = blurred
             slopes = _gather_grad(*args, derivative, self._cells, self._fracs)[1]
-            return float(value), -slopes * self._inv_size
+            return float(value), -slopes
 
     def grad(self, theta: np.ndarray) -> np.ndarray:
         """The analytic gradient ``dO/dtheta`` (3,)."""
@@ -435,7 +498,7 @@ class VolumeObjective:
                 self._batch = self._workspace(chunks)
             padded, cells, fracs = (a[:chunks] for a in self._batch)
             events = (self._points, self._dt, self._weights)
-            grid_args = (self._origin, self._inv_size, padded, cells, fracs)
+            grid_args = (self._origin, self._inv_size, self._proj, padded, cells, fracs)
             _batch_moments(*events, thetas, *grid_args, moments)
         n_voxels = self.grid.n_voxels
         return np.array([self.objective.from_moments(m, q, n_voxels)[0] for m, q in moments])
@@ -452,17 +515,16 @@ class VolumeObjective:
         """
         sampled = np.empty(self.n_events)
         if volume is None:
-            with self._voted(theta) as ((points, dt, _, theta, origin, inv_size), _):
-                grid_args = (self._padded, self._cells, self._fracs)
-                _sample(points, dt, theta, origin, inv_size, *grid_args, sampled)
+            with self._voted(theta) as (args, _):
+                _sample(*args[:2], *args[3:], self._padded, self._cells, self._fracs, sampled)
         else:
-            points, dt, _, theta, origin, inv_size = self._args(theta)
+            args = self._args(theta)
             padded = self._scratch_volumes()[0]
             self._interior(padded)[...] = _finite_array(
                 "volume", volume, self.grid.shape, self.dtype
             )
             self._cells.fill(-1)  # no cached cells: locate every event
-            _sample(points, dt, theta, origin, inv_size, padded, self._cells, self._fracs, sampled)
+            _sample(*args[:2], *args[3:], padded, self._cells, self._fracs, sampled)
         out = np.empty_like(sampled)
         out[self._order] = sampled
         return out

@@ -8,7 +8,7 @@ from scipy.optimize import linear_sum_assignment
 
 from spatialseg.edpa import back_project, voxel_size
 from spatialseg.grid import VoxelGrid, grid_around
-from spatialseg.motion_init import _plane_fits, initial_motions, time_surfaces
+from spatialseg.motion_init import _plane_fits, initial_motions, lift_constraints, time_surfaces
 from spatialseg.recording import Camera
 
 CAM = Camera(fx=200.0, fy=200.0, cx=120.0, cy=90.0, width=240, height=180)
@@ -210,3 +210,26 @@ def test_initial_motions_reject_bad_input():
     for args, override, message in bad:
         with pytest.raises(ValueError, match=message):
             initial_motions(*args, **(PARAMS | override))
+
+
+def test_lifted_constraints_make_a_static_scene_at_many_depths_one_velocity():
+    """A camera translating sideways: image speed falls with depth (1.5-8 m), but every lifted
+    constraint is satisfied by the one 3-D velocity (-2, 0, 0) and the lifted normal flows
+    agree, while the image-plane ones spread by the depth ratio."""
+    rng = np.random.default_rng(0)
+    n, fx, fy, cx, cy = 200, 200.0, 200.0, 119.5, 89.5
+    z = rng.uniform(1.5, 8.0, n)
+    u, v = rng.uniform(0, 240, n), rng.uniform(0, 180, n)
+    theta = np.array([-2.0, 0.0, 0.0])
+    lift = np.zeros((n, 2, 3))
+    lift[:, 0, 0], lift[:, 0, 2] = fx / z, -(u - cx) / z
+    lift[:, 1, 1], lift[:, 1, 2] = fy / z, -(v - cy) / z
+    flow = lift @ theta  # px/s
+    a, b = np.zeros((n, 3, 3)), np.zeros((n, 3))
+    a[:, 0, 0] = -1.0  # vertical edges: the normal is the flow's direction
+    b[:, 0] = np.abs(flow[:, 0])
+    lifted_a, lifted_b = lift_constraints(a, b, lift)
+    np.testing.assert_allclose(lifted_a[:, 0] @ theta, lifted_b[:, 0], rtol=1e-12)
+    assert b[:, 0].max() / b[:, 0].min() > 4
+    assert lifted_b[:, 0].max() / lifted_b[:, 0].min() < 1.2  # only the off-axis angle
+    assert not lifted_a[:, 1:].any() and not lifted_b[:, 1:].any()

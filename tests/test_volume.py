@@ -14,18 +14,31 @@ from spatialseg.objectives import Objective, make_objective, objective_names
 from spatialseg.volume import VolumeObjective
 
 GRID = VoxelGrid(np.array([0.0, -0.5, 1.0]), np.array([0.1, 0.1, 0.25]), (14, 11, 6))
+#: A grid over pixels and inverse depth (1.5-2.5 m) of a 300 px focal length camera.
+IMAGE_GRID = VoxelGrid(
+    np.array([150.0, 110.0, 0.4]),
+    np.array([2.0, 2.0, 0.05]),
+    (14, 11, 6),
+    projection=np.array([300.0, 300.0, 172.5, 129.5]),
+)
+GRIDS = pytest.mark.parametrize("grid", [GRID, IMAGE_GRID], ids=["metric", "image"])
 THETA = np.array([0.9, -0.6, 1.3])
 #: Agreement with the reference (float32 volumes round each vote: worst seen 3e-7).
 RTOL = {np.float64: 1e-9, np.float32: 1e-6}
 CASES = [(name, sigma) for name in ref.OBJECTIVES for sigma in (0.0, 0.8)]
 
 
-def _events(n: int, seed: int = 0, margin: float = 2.0):
-    """Random events over the grid, ``margin`` voxels beyond it on every side (border cases)."""
+def _events(n: int, seed: int = 0, margin: float = 2.0, grid: VoxelGrid = GRID):
+    """Random events over ``grid``, ``margin`` voxels beyond it on every side (border cases)."""
     rng = np.random.default_rng(seed)
-    lo = GRID.origin - margin * GRID.voxel_size
-    hi = GRID.origin + (np.array(GRID.shape) - 1 + margin) * GRID.voxel_size
-    return rng.uniform(lo, hi, (n, 3)), rng.uniform(-0.05, 0.05, n), rng.uniform(0.0, 1.0, n)
+    lo = grid.origin - margin * grid.voxel_size
+    hi = grid.origin + (np.array(grid.shape) - 1 + margin) * grid.voxel_size
+    coords = rng.uniform(lo, hi, (n, 3))
+    if grid.projection is not None:  # back from (u, v, 1/Z) to (X, Y, Z)
+        fx, fy, cx, cy = grid.projection
+        z = 1.0 / coords[:, 2]
+        coords = np.column_stack([(coords[:, 0] - cx) * z / fx, (coords[:, 1] - cy) * z / fy, z])
+    return coords, rng.uniform(-0.05, 0.05, n), rng.uniform(0.0, 1.0, n)
 
 
 def _close(actual, expected, rtol):
@@ -45,46 +58,49 @@ def _central_difference(f, theta, step=1e-5):
     return grad
 
 
+@GRIDS
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 @pytest.mark.parametrize(("name", "sigma"), CASES)
-def test_matches_reference(name, sigma, dtype):
-    points, dt, w = _events(800)
-    ev = VolumeObjective(points, dt, GRID, make_objective(name, blur_sigma=sigma), w, dtype)
+def test_matches_reference(name, sigma, dtype, grid):
+    points, dt, w = _events(800, grid=grid)
+    ev = VolumeObjective(points, dt, grid, make_objective(name, blur_sigma=sigma), w, dtype)
     # the reference sees the same (rounded) inputs
     p, t, ww = (a.astype(dtype) for a in (points, dt, w))
     value, grad = ev.value_and_grad(THETA)
-    ref_value, ref_grad = ref.value_and_grad(p, t, THETA, GRID, ww, name, sigma)
+    ref_value, ref_grad = ref.value_and_grad(p, t, THETA, grid, ww, name, sigma)
     _close(value, ref_value, RTOL[dtype])
     _close(grad, ref_grad, RTOL[dtype])
     assert ev.value(THETA) == value
     np.testing.assert_array_equal(ev.grad(THETA), grad)
     volume = ev.volume(THETA)
-    assert volume.shape == GRID.shape and volume.dtype == dtype
-    _close(volume, ref.volume(p, t, THETA, GRID, ww), RTOL[dtype])
+    assert volume.shape == grid.shape and volume.dtype == dtype
+    _close(volume, ref.volume(p, t, THETA, grid, ww), RTOL[dtype])
     _close(
         ev.sample(THETA),
-        ref.sample(p, t, THETA, GRID, ref.volume(p, t, THETA, GRID, ww)),
+        ref.sample(p, t, THETA, grid, ref.volume(p, t, THETA, grid, ww)),
         RTOL[dtype],
     )
 
 
+@GRIDS
 @pytest.mark.parametrize("name", objective_names())
 @pytest.mark.parametrize("sigma", [0.0, 0.8])
-def test_gradient_matches_finite_differences(name, sigma):
-    points, dt, w = _events(400, seed=1)
-    ev = VolumeObjective(points, dt, GRID, make_objective(name, blur_sigma=sigma), w)
+def test_gradient_matches_finite_differences(name, sigma, grid):
+    points, dt, w = _events(400, seed=1, grid=grid)
+    ev = VolumeObjective(points, dt, grid, make_objective(name, blur_sigma=sigma), w)
     for theta in (THETA, np.array([-0.3, 0.4, -0.7])):
         _close(ev.grad(theta), _central_difference(ev.value, theta), 1e-6)
 
 
-def test_reference_gradient_matches_finite_differences():
-    points, dt, w = _events(300, seed=2)
+@GRIDS
+def test_reference_gradient_matches_finite_differences(grid):
+    points, dt, w = _events(300, seed=2, grid=grid)
 
     def value(theta):
-        return ref.value(points, dt, theta, GRID, w)
+        return ref.value(points, dt, theta, grid, w)
 
     _close(
-        ref.value_and_grad(points, dt, THETA, GRID, w)[1], _central_difference(value, THETA), 1e-6
+        ref.value_and_grad(points, dt, THETA, grid, w)[1], _central_difference(value, THETA), 1e-6
     )
 
 
@@ -114,20 +130,22 @@ def test_custom_objective_uses_the_generic_path():
     )
 
 
+@GRIDS
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
-def test_batch_value_equals_value_one_by_one(dtype):
-    points, dt, w = _events(500, seed=4)
-    ev = VolumeObjective(points, dt, GRID, "variance", w, dtype)
+def test_batch_value_equals_value_one_by_one(dtype, grid):
+    points, dt, w = _events(500, seed=4, grid=grid)
+    ev = VolumeObjective(points, dt, grid, "variance", w, dtype)
     thetas = np.random.default_rng(0).normal(0.0, 1.0, (7, 3))
     np.testing.assert_array_equal(ev.batch_value(thetas), [ev.value(t) for t in thetas])
     assert ev.batch_value(np.zeros((0, 3))).shape == (0,)
 
 
+@GRIDS
 @pytest.mark.parametrize("n_events", [30, 5000])
-def test_volume_buffer_is_zero_between_calls(n_events):
+def test_volume_buffer_is_zero_between_calls(n_events, grid):
     """Both clearing strategies (by the events' cells, by a memset) leave the buffer zero."""
-    points, dt, w = _events(n_events, seed=5)
-    ev = VolumeObjective(points, dt, GRID, "variance", w)
+    points, dt, w = _events(n_events, seed=5, grid=grid)
+    ev = VolumeObjective(points, dt, grid, "variance", w)
     first = ev.value_and_grad(THETA)
     for theta in (THETA, -THETA, 2 * THETA):
         ev.value_and_grad(theta)
@@ -180,6 +198,28 @@ def test_corners_outside_are_dropped_one_by_one():
     ev = VolumeObjective([[0.0, 1.5, 1.5]], [1.0], grid, "sum_of_squares")
     values = [ev.value(np.array([t, 0.0, 0.0])) for t in (0.999, 0.9999, 1.0, 1.0001)]
     assert np.all(np.diff(values) <= 0) and values[-2] < 1e-7 and values[-1] == 0.0
+
+
+def test_image_grid_behind_the_camera_votes_nothing():
+    """A point warped to Z <= 0 leaves a projective grid (no vote, no NaN in value or grad)."""
+    point = np.array([[0.0, 0.0, 0.5]])
+    ev = VolumeObjective(point, [1.0], IMAGE_GRID, "variance")
+    for vz in (0.5, 0.6):  # warped depth 0 and -0.1
+        value, grad = ev.value_and_grad(np.array([0.0, 0.0, vz]))
+        assert value == 0.0 and np.array_equal(grad, np.zeros(3))
+    assert not ev.volume(np.array([0.0, 0.0, 0.5])).any()
+
+
+def test_image_grid_images_a_point_at_its_pixel():
+    """On a projective grid a point votes at its pixel and inverse depth."""
+    fx, fy, cx, cy = IMAGE_GRID.projection
+    pixel, depth = np.array([160.0, 118.0]), 2.0
+    point = np.array([[(pixel[0] - cx) * depth / fx, (pixel[1] - cy) * depth / fy, depth]])
+    index = IMAGE_GRID.continuous_index(point)[0]
+    np.testing.assert_allclose(index, (np.array([*pixel, 0.5]) - IMAGE_GRID.origin) / [2, 2, 0.05])
+    volume = VolumeObjective(point, [0.0], IMAGE_GRID, "variance").volume(np.zeros(3))
+    assert volume.sum() == pytest.approx(1.0)
+    assert np.isclose(volume[tuple(np.rint(index).astype(int))], 1.0)
 
 
 def test_planar_model_on_a_single_layer():
