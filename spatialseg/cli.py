@@ -67,6 +67,7 @@ def _report(summary: dict[str, Any], out_dir: Path) -> None:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Validate the config, segment the scene, write the outputs; return result.json's content."""
+    from spatialseg.depth import prepare_recording
     from spatialseg.pipeline import log_iteration, segment_recording
     from spatialseg.results import summarise, write_outputs
     from spatialseg.scenes import load_scene
@@ -75,10 +76,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     validate_config(cfg, HydraConfig.get().runtime.choices)
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     start = time.perf_counter()
+    plain = OmegaConf.to_container(cfg, resolve=True)
     recording = load_scene(cfg.scene, seed=int(cfg.seed), window_events=int(cfg.window.events))
+    recording = prepare_recording(recording, plain)
     timings = {"load": time.perf_counter() - start}
     optimizer = build_optimizer(cfg)
-    plain = OmegaConf.to_container(cfg, resolve=True)
     progress = log_iteration if cfg.output.progress else None
     begin = time.perf_counter()
     seg = segment_recording(recording, plain, optimizer, seed=int(cfg.seed), on_iteration=progress)

@@ -1,4 +1,11 @@
-"""Turn a ``scene`` config into a :class:`Recording`: simulate it, or read it from disk."""
+"""Turn a ``scene`` config into a :class:`Recording`: simulate it, or read it from disk.
+
+``kind: recording`` reads any type :func:`spatialseg.io.read_any` supports (a recording
+directory, ``.txt``/``.h5``/``.npz`` events, AEDAT4, Prophesee ``.raw``/``.dat``) from
+``path``, or from ``packaged`` (a file shipped in ``spatialseg/data/``) when ``path`` is
+null. Files without intrinsics take ``camera`` (fx, fy, cx, cy, width, height) or a
+nominal pinhole of ``fov_deg``.
+"""
 
 from __future__ import annotations
 
@@ -6,23 +13,71 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from spatialseg.recording import Recording
+from spatialseg.recording import Camera, Recording
 
-__all__ = ["load_scene"]
+__all__ = ["load_scene", "packaged_data"]
+
+_CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
+_DATA_DIR = Path(__file__).resolve().parent / "data"
+
+
+def packaged_data(relative: str) -> Path:
+    """The path of a data file shipped in ``spatialseg/data/`` (FileNotFoundError if absent)."""
+    file = _DATA_DIR / relative
+    if not file.exists():
+        raise FileNotFoundError(
+            f"{file}: packaged data not found; reinstall spatialseg (pip install -e .) "
+            "or give scene.path=FILE"
+        )
+    return file
+
+
+def _scene_path(scene: Mapping[str, Any]) -> Path:
+    """``scene.path`` (user paths expand ``~``), else the packaged file ``scene.packaged``."""
+    path = scene.get("path")
+    if path:
+        return Path(str(path)).expanduser()
+    if scene.get("packaged"):
+        return packaged_data(str(scene["packaged"]))
+    raise ValueError("scene=recording needs a path: add scene.path=DIR")
+
+
+def _scene_camera(scene: Mapping[str, Any]) -> Camera | None:
+    """The camera ``scene.camera`` gives (all of fx, fy, cx, cy, width, height), or None."""
+    cam = scene.get("camera")
+    if cam is None:
+        return None
+    missing = [k for k in _CAMERA_KEYS if cam.get(k) is None]
+    if missing:
+        raise ValueError(
+            f"scene.camera lacks {', '.join(missing)}; give fx, fy, cx, cy, width, height "
+            "or set scene.camera=null"
+        )
+    try:
+        return Camera(
+            *(float(cam[k]) for k in _CAMERA_KEYS[:4]), int(cam["width"]), int(cam["height"])
+        )
+    except ValueError as exc:
+        raise ValueError(f"scene.camera: {exc}") from None
 
 
 def load_scene(scene: Mapping[str, Any], *, seed: int, window_events: int) -> Recording:
-    """The recording a scene config describes (``kind: simulated`` or ``kind: recording``)."""
+    """The recording a scene config describes (``kind: simulated`` or ``kind: recording``),
+    as stored: denoising and depth sources come after (:func:`spatialseg.depth.prepare_recording`).
+    """
     kind = scene.get("kind")
     if kind == "simulated":
         from spatialseg.simulate import simulate_scene
 
         return simulate_scene(scene, seed=seed, max_events=window_events)
     if kind == "recording":
-        from spatialseg.io import read_recording
+        from spatialseg.io import read_any
 
-        path = scene.get("path")
-        if not path:
-            raise ValueError("scene=recording needs a path: add scene.path=DIR")
-        return read_recording(Path(str(path)).expanduser())
+        fov = scene.get("fov_deg")
+        recording = read_any(
+            _scene_path(scene),
+            camera=_scene_camera(scene),
+            fov_deg=None if fov is None else float(fov),
+        )
+        return recording
     raise ValueError(f"scene kind {kind!r} is not 'simulated' or 'recording'; fix the scene YAML")
