@@ -6,12 +6,14 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from spatialseg.config import conf_dir, group_options
+from spatialseg.events import EventStream
 
-__all__ = ["compose_config", "simulated_scenes", "write_json"]
+__all__ = ["compose_config", "simulated_scenes", "synthetic_events", "write_json"]
 
 
 def compose_config(*overrides: str) -> dict[str, Any]:
@@ -33,3 +35,17 @@ def write_json(path: Path, payload: Any) -> None:
     """Write the experiment's results as JSON (creating the directory)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(payload, indent=2))
+
+
+def synthetic_events(n: int, seed: int = 0, width: int = 346, height: int = 260) -> EventStream:
+    """``n`` uniformly spread events over 10 s on a sensor (default DAVIS346), at whole
+    microseconds as cameras stamp them (so every file format round-trips them exactly)."""
+    rng = np.random.default_rng(seed)
+    return EventStream(
+        rng.integers(0, width, n),
+        rng.integers(0, height, n),
+        np.sort(rng.integers(0, 10_000_000, n)) / 1e6,
+        rng.choice([-1, 1], n),
+        width,
+        height,
+    )

@@ -17,29 +17,15 @@ import statistics
 import time
 from pathlib import Path
 
-import numpy as np
+from _common import synthetic_events
 from omegaconf import OmegaConf
 
 from spatialseg.config import conf_dir
 from spatialseg.denoise import denoise_mask
-from spatialseg.events import EventStream
 from spatialseg.simulate import simulate_scene
 
 WIDTH, HEIGHT = 346, 260
 SCENES = ("night", "exterior")
-
-
-def synthetic_events(n: int, seed: int = 0) -> EventStream:
-    """``n`` uniformly spread events over 10 s on a DAVIS346 sensor."""
-    rng = np.random.default_rng(seed)
-    return EventStream(
-        rng.integers(0, WIDTH, n),
-        rng.integers(0, HEIGHT, n),
-        np.sort(rng.uniform(0.0, 10.0, n)),
-        rng.choice([-1, 1], n),
-        WIDTH,
-        HEIGHT,
-    )
 
 
 def speed(n: int, radius: int, window: float, repeat: int) -> dict[str, float]:

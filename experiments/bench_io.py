@@ -9,7 +9,6 @@ takes. Prints a table with the read/write ratios and writes the numbers as JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import statistics
 import tempfile
@@ -18,25 +17,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from _common import synthetic_events, write_json
 
-from spatialseg.events import EventStream
 from spatialseg.io import read_events, write_events
 
 WIDTH, HEIGHT = 346, 260
 FORMATS = (".txt", ".h5", ".npz")
-
-
-def synthetic_events(n: int, seed: int = 0) -> EventStream:
-    """``n`` uniformly spread events over 10 s on a DAVIS346 sensor."""
-    rng = np.random.default_rng(seed)
-    return EventStream(
-        rng.integers(0, WIDTH, n),
-        rng.integers(0, HEIGHT, n),
-        np.sort(rng.uniform(0.0, 10.0, n)),
-        rng.choice([-1, 1], n),
-        WIDTH,
-        HEIGHT,
-    )
 
 
 def median_seconds(action: Callable[[], object], repeat: int) -> float:
@@ -127,8 +113,7 @@ def main() -> None:
     args = parser.parse_args()
     result = run(args.events, args.repeat)
     print_table(result)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     print(f"wrote {args.out}")
 
 

@@ -10,7 +10,6 @@ The target is 100,000 events in under 10 s.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -18,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import write_json
 from omegaconf import OmegaConf
 
 from spatialseg.config import conf_dir
@@ -101,8 +101,7 @@ def main() -> None:
     args = parser.parse_args()
     result = run(args.window, args.events, args.repeat)
     print_table(result)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     print(f"wrote {args.out}")
 
 

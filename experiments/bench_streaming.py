@@ -23,8 +23,8 @@ import tracemalloc
 from pathlib import Path
 
 import numpy as np
+from _common import synthetic_events, write_json
 
-from spatialseg.events import EventStream
 from spatialseg.io import (
     iter_event_chunks,
     read_any,
@@ -36,19 +36,6 @@ from spatialseg.recording import Camera
 WIDTH, HEIGHT = 346, 260
 FORMATS = (".h5", ".npz", ".txt", ".raw")
 CAMERA = Camera(200.0, 200.0, 172.5, 129.5, WIDTH, HEIGHT)  # any camera: only events are read
-
-
-def synthetic_events(n: int, seed: int = 0) -> EventStream:
-    """``n`` uniformly spread events over 10 s on a DAVIS346 sensor (whole microseconds)."""
-    rng = np.random.default_rng(seed)
-    return EventStream(
-        rng.integers(0, WIDTH, n),
-        rng.integers(0, HEIGHT, n),
-        np.sort(rng.integers(0, 10_000_000, n)) / 1e6,
-        rng.choice([-1, 1], n),
-        WIDTH,
-        HEIGHT,
-    )
 
 
 def _maxrss_mb() -> float:
@@ -161,8 +148,7 @@ def main() -> None:
         return
     result = run(args.events, args.chunk)
     print_table(result)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     print(f"wrote {args.out}")
 
 

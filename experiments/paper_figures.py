@@ -11,9 +11,11 @@ each scene is an ordinary MLflow run under one sweep parent (default store
 outputs in ``--runs-dir/<job>``. Then, per scene, the figure is rebuilt from that run's
 ``labels.npy`` and ``result.json``; the warped volumes are recomputed from the window's
 points (``pipeline.prepare``, deterministic) and the run's final thetas, and the grid shape
-is checked against the run's. Panels: (a) events by cluster, (b)-(c) the volume warped by
-each cluster's motion (one object sharp, the other blurred), (d)-(e) contrast and (f)-(g)
-theta per iteration. The PNGs are also logged as artifacts of the scene's MLflow run.
+is checked against the run's. Panels: (a) the window's first keyframe (an event image if
+the window has none) and (b) its depth map in metres (unknown depth blank), as in the
+paper's Fig. 6a/7a, (c) events by cluster, (d)-(e) the volume warped by each cluster's
+motion (one object sharp, the other blurred), (f)-(g) contrast and (h)-(i) theta per
+iteration. The PNGs are also logged as artifacts of the scene's MLflow run.
 """
 
 from __future__ import annotations
@@ -29,9 +31,10 @@ import numpy as np
 from _common import compose_config
 from omegaconf import OmegaConf
 
+from spatialseg.depth import prepare_recording
 from spatialseg.figures import paper_figure, save_figure, warped_images
 from spatialseg.pipeline import prepare
-from spatialseg.plots import cluster_image
+from spatialseg.plots import cluster_image, event_image
 from spatialseg.scenes import load_scene
 from spatialseg.tracking import JOBS_DIR, PARENT_FILE, tracking_uri
 
@@ -109,6 +112,8 @@ def scene_figure(scene: str, job: dict[str, Any]) -> Any:
     recording = load_scene(
         cfg["scene"], seed=int(cfg["seed"]), window_events=int(cfg["window"]["events"])
     )
+    # The run's own preparation (denoising, depth source), so labels.npy lines up.
+    recording = prepare_recording(recording, cfg)
     index, window = next(iter(recording.windows()))
     prepared = prepare(window, cfg)
     first = result["windows"][0]
@@ -125,7 +130,24 @@ def scene_figure(scene: str, job: dict[str, Any]) -> Any:
     title = f"{scene}: {len(window.events)} events, {first['iterations']} iterations" + (
         f", accuracy {accuracy:.4f}" if accuracy is not None else ""
     )
-    return paper_figure(title, clusters, warped, first["history"], first["units"])
+    depth = window.depth_maps[0]
+    if window.keyframes:
+        keyframe = window.keyframes[0]
+        scene_image = keyframe.image
+        caption = f"keyframe at t = {1e3 * keyframe.t:.1f} ms"
+    else:
+        scene_image = event_image(window.events)
+        caption = "events (no keyframe in the window)"
+    return paper_figure(
+        title,
+        scene_image,
+        caption,
+        depth,
+        clusters,
+        warped,
+        first["history"],
+        first["units"],
+    )
 
 
 def figure_name(scene: str) -> str:
