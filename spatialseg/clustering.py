@@ -220,6 +220,7 @@ def iterative_clustering(
     p_step_sigma: float,
     seed: int,
     on_iteration: Callable[[IterationRecord], None] | None = None,
+    step: tuple[ClusterEvaluator, np.ndarray] | None = None,
 ) -> ClusteringResult:
     """Run Algorithm 1 from velocities ``init_thetas`` (K x dim) and memberships ``init_p``.
 
@@ -227,6 +228,8 @@ def iterative_clustering(
     theta-step derives from ``seed`` so the whole loop is deterministic. ``p_step_sigma``
     (voxels, 0 = off) smooths each volume before the P-step samples it, so an event's
     response reflects its neighbourhood rather than the texture of a single voxel.
+    ``step`` (an evaluator over a subset of the events, and their indices) makes the
+    theta-step optimise on that subset; the P-step and the recorded contrasts use all events.
     """
     thetas = np.array(init_thetas, dtype=np.float64, copy=True)
     k = thetas.shape[0]
@@ -244,11 +247,15 @@ def iterative_clustering(
         start = time.perf_counter()
         evals = 0
         for j in range(k):
-            evaluator.set_weights(p[:, j])
+            step_evaluator, subset = step or (evaluator, slice(None))
+            step_evaluator.set_weights(p[subset, j])
             thetas[j], values[j], n = _theta_step(
-                evaluator, optimizer, thetas[j], bounds, evals_per_step, int(seeds[it, j])
+                step_evaluator, optimizer, thetas[j], bounds, evals_per_step, int(seeds[it, j])
             )
             evals += n
+            if step is not None:
+                evaluator.set_weights(p[:, j])
+                values[j] = evaluator.value(thetas[j])
         p = update_memberships(_responses(evaluator, thetas, p, p_step_sigma))
         elapsed = time.perf_counter() - start
         record = IterationRecord(it + 1, values.copy(), thetas.copy(), evals, elapsed)

@@ -319,6 +319,32 @@ def _full_probabilities(p: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return full
 
 
+def _step_subset(
+    prepared: Prepared, t_ref: float, cfg: Mapping[str, Any], *, seed: int
+) -> tuple[ModelEvaluator, np.ndarray] | None:
+    """The theta-step's evaluator over at most ``clustering.step_events`` events drawn with
+    ``seed`` (and their indices), or None to optimise on all events.
+
+    Decision: the contrast's maximum is set by the motion, not by the event count, so the
+    velocities can be found on a sample while the P-step labels every event; the cost of
+    the theta-step then stops growing with the window (measured in docs/performance.md).
+    """
+    limit = cfg["clustering"]["step_events"]
+    n = prepared.points.shape[0]
+    if limit is None or n <= int(limit):
+        return None
+    if int(limit) < 1:
+        raise ValueError(f"clustering.step_events must be >= 1 or null, got {limit}")
+    subset = np.sort(np.random.default_rng(seed).choice(n, int(limit), replace=False))
+    volume = VolumeObjective(
+        prepared.points[subset],
+        prepared.t[subset] - t_ref,
+        prepared.grid,
+        make_objective(**cfg["objective"]),
+    )
+    return ModelEvaluator(volume, prepared.dim), subset
+
+
 def segment_window(
     window: Recording,
     cfg: Mapping[str, Any],
@@ -353,6 +379,7 @@ def segment_window(
     )
     evaluator = ModelEvaluator(volume, prepared.dim)
     ccfg = cfg["clustering"]
+    step = _step_subset(prepared, t_ref, cfg, seed=seed)
     rules = ConvergenceRules(
         max_iterations=int(ccfg["max_iterations"]),
         tol=float(ccfg["tol"]),
@@ -378,6 +405,7 @@ def segment_window(
         p_step_sigma=float(ccfg["p_step_sigma"]),
         seed=seed,
         on_iteration=on_iteration,
+        step=step,
     )
     timings["cluster"] = time.perf_counter() - start
     labels = assign_labels(result.probabilities, prepared.valid, float(ccfg["min_probability"]))

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 import optimizers
 from spatialseg.clustering import (
@@ -12,8 +14,11 @@ from spatialseg.clustering import (
     iterative_clustering,
     update_memberships,
 )
+from spatialseg.config import conf_dir
 from spatialseg.grid import grid_around
-from spatialseg.pipeline import ModelEvaluator
+from spatialseg.metrics import segmentation_metrics
+from spatialseg.pipeline import ModelEvaluator, segment_window
+from spatialseg.scenes import load_scene
 from spatialseg.volume import VolumeObjective
 
 
@@ -76,3 +81,28 @@ def test_clustering_recovers_two_known_motions():
     assert np.mean(result.probabilities.argmax(axis=1) == labels) > 0.95
     totals = [r.total for r in result.history]
     assert len(totals) == result.iterations and all(np.isfinite(totals))
+
+
+def test_theta_step_on_a_subset_labels_every_event():
+    """clustering.step_events: velocities from a sample, memberships and contrasts for all."""
+    overrides = ["+scene=interior", "clustering.step_events=1500"]
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = OmegaConf.to_container(compose("config", overrides=overrides), resolve=True)
+    rec = load_scene(cfg["scene"], seed=0, window_events=4000)
+    _, window = next(rec.windows())
+    res = segment_window(window, cfg, optimizers.create("ssa_ga"), seed=0)
+    assert res.probabilities.shape == (len(window.events), 2)
+    assert segmentation_metrics(res.labels, window.ground_truth.labels)["accuracy"] > 0.95
+    # one iteration from uniform memberships: the recorded contrast is the full volume's
+    one = {**cfg, "clustering": {**cfg["clustering"], "max_iterations": 1}}
+    one["clustering"]["init_memberships"] = "uniform"
+    res = segment_window(window, one, optimizers.create("ssa_ga"), seed=0)
+    full = ModelEvaluator(
+        VolumeObjective(
+            res.prepared.points, res.prepared.t - res.t_ref, res.prepared.grid, "variance"
+        ),
+        3,
+    )
+    full.set_weights(np.full(full.n_events, 0.5))
+    recorded = res.clustering.history[-1].per_cluster[0]
+    assert recorded == pytest.approx(full.value(res.clustering.thetas[0]), rel=1e-9)
