@@ -455,11 +455,14 @@ def _event_boundaries(t: np.ndarray, window_events: int) -> np.ndarray:
 def attach_depth(recording: Recording, source: DepthSource, *, window_events: int) -> Recording:
     """The recording with ``source``'s depth maps at its keyframe times or every N events.
 
-    With at least two keyframes, maps are made at the keyframe times (with their images),
-    from the last keyframe at or before the first event to the first at or after the last;
-    events outside them are in no window. Otherwise maps are made every ``window_events``
-    events, first and last event times included. ``depth=recording`` returns the recording
-    unchanged and needs its own two maps or more.
+    A source that reads images (``onnx``) makes maps at the keyframe times, from the last
+    keyframe at or before the first event to the first at or after the last; events outside
+    them are in no window. Other sources make maps every ``window_events`` events, first and
+    last event times included. Decision: a DAVIS's APS frames come every ~40 ms, about 1,300
+    events on the road recording, too few per window for the motions to stand out; a
+    geometric source needs no image, so the window length stays the user's
+    (``window.events``). ``depth=recording`` returns the recording unchanged and needs its
+    own two maps or more.
     """
     if isinstance(window_events, bool) or int(window_events) != window_events or window_events < 1:
         raise ValueError(f"window.events must be an integer >= 1, got {window_events!r}")
@@ -473,14 +476,14 @@ def attach_depth(recording: Recording, source: DepthSource, *, window_events: in
     t = recording.events.t
     if not len(t):
         raise ValueError(f"{recording.name}: no events to attach depth maps to")
-    frames = _keyframes_around(recording.keyframes, float(t[0]), float(t[-1]))
-    if len(frames) >= 2:
+    if source.needs_image:
+        frames = _keyframes_around(recording.keyframes, float(t[0]), float(t[-1]))
+        if len(frames) < 2:
+            raise ValueError(
+                f"{recording.name}: depth={source.name} needs two or more keyframe images "
+                f"(images.txt) and the recording has {len(recording.keyframes)}"
+            )
         pairs = [(k.t, k.image) for k in frames]
-    elif source.needs_image:
-        raise ValueError(
-            f"{recording.name}: depth={source.name} needs two or more keyframe images "
-            f"(images.txt) and the recording has {len(recording.keyframes)}"
-        )
     else:
         pairs = [(float(b), None) for b in _event_boundaries(t, int(window_events))]
         if len(pairs) < 2:

@@ -129,18 +129,29 @@ def _save(fig: Figure, path: Path) -> Path:
 
 
 def save_result_figures(out_dir: Path, recording: Recording, seg: SegmentationResult) -> list[Path]:
-    """Write the run's figures: events by cluster, and per window the volume warped by each
-    cluster's motion (one object sharp, the others blurred) and the contrast/theta curves."""
+    """Write the run's figures: events by cluster (all, and per window when there are several:
+    cluster ids are per window), and per window the volume warped by each cluster's motion
+    (one object sharp, the others blurred) and the contrast/theta curves."""
     k = max(len(w.clustering.thetas) for w in seg.windows)
-    fig = Figure(figsize=(6, 4.8), layout="constrained")
-    ax = fig.subplots()
-    ax.imshow(cluster_image(recording.events, seg.labels, k), interpolation="nearest")
-    ax.set_title(f"{recording.name}: events by cluster (grey: unassigned)")
-    paths = [_save(fig, out_dir / "clusters.png")]
+    paths = [_save_clusters(out_dir / "clusters.png", recording, seg.labels, k, recording.name)]
     for w, window in enumerate(seg.windows):
         suffix = f"_w{w}" if len(seg.windows) > 1 else ""
+        if suffix:
+            part = recording.select(seg.indices[w])
+            title = f"{recording.name}, window {w}"
+            labels = seg.labels[seg.indices[w]]
+            paths.append(_save_clusters(out_dir / f"clusters{suffix}.png", part, labels, k, title))
         paths += _window_figures(out_dir, window, suffix)
     return paths
+
+
+def _save_clusters(path: Path, recording: Recording, labels: np.ndarray, k: int, title: str):
+    """The events coloured by cluster (grey: unassigned), as a PNG."""
+    fig = Figure(figsize=(6, 4.8), layout="constrained")
+    ax = fig.subplots()
+    ax.imshow(cluster_image(recording.events, labels, k), interpolation="nearest")
+    ax.set_title(f"{title}: events by cluster (grey: unassigned)")
+    return _save(fig, path)
 
 
 def _window_figures(out_dir: Path, window: WindowResult, suffix: str) -> list[Path]:
