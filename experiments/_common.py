@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 from typing import Any
@@ -13,7 +14,7 @@ from omegaconf import OmegaConf
 from spatialseg.config import conf_dir, group_options
 from spatialseg.events import EventStream
 
-__all__ = ["compose_config", "simulated_scenes", "synthetic_events", "write_json"]
+__all__ = ["compose_config", "positive_count", "simulated_scenes", "synthetic_events", "write_json"]
 
 
 def compose_config(*overrides: str) -> dict[str, Any]:
@@ -49,3 +50,14 @@ def synthetic_events(n: int, seed: int = 0, width: int = 346, height: int = 260)
         width,
         height,
     )
+
+
+def positive_count(text: str) -> int:
+    """An event count such as ``1e6`` or ``250000`` (argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (np.isfinite(value) and value >= 1 and value == int(value)):
+        raise argparse.ArgumentTypeError(f"need a positive whole number of events, got {text!r}")
+    return int(value)
