@@ -336,13 +336,22 @@ def _step_subset(
     if int(limit) < 1:
         raise ValueError(f"clustering.step_events must be >= 1 or null, got {limit}")
     subset = np.sort(np.random.default_rng(seed).choice(n, int(limit), replace=False))
+    return _evaluator(prepared, t_ref, cfg, subset), subset
+
+
+def _evaluator(
+    prepared: Prepared, t_ref: float, cfg: Mapping[str, Any], index: Any = slice(None)
+) -> ModelEvaluator:
+    """The configured objective over the window's events ``index`` (default all), stored in
+    ``volume.dtype`` (float32 halves the memory per event, float64 is the more accurate)."""
     volume = VolumeObjective(
-        prepared.points[subset],
-        prepared.t[subset] - t_ref,
+        prepared.points[index],
+        prepared.t[index] - t_ref,
         prepared.grid,
         make_objective(**cfg["objective"]),
+        dtype=str(cfg["volume"]["dtype"]),
     )
-    return ModelEvaluator(volume, prepared.dim), subset
+    return ModelEvaluator(volume, prepared.dim)
 
 
 def segment_window(
@@ -374,10 +383,7 @@ def segment_window(
     timings["init"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    volume = VolumeObjective(
-        prepared.points, prepared.t - t_ref, prepared.grid, make_objective(**cfg["objective"])
-    )
-    evaluator = ModelEvaluator(volume, prepared.dim)
+    evaluator = _evaluator(prepared, t_ref, cfg)
     ccfg = cfg["clustering"]
     step = _step_subset(prepared, t_ref, cfg, seed=seed)
     rules = ConvergenceRules(

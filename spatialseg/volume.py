@@ -362,8 +362,12 @@ class VolumeObjective:
             objective = make_objective(objective)
         if not isinstance(objective, Objective):
             raise ValueError(f"objective must be an Objective or a name, got {objective!r}")
-        if np.dtype(dtype) not in [np.dtype(d) for d in DTYPES]:
-            raise ValueError(f"dtype must be float32 or float64, got {np.dtype(dtype)}")
+        try:
+            dtype = np.dtype(dtype)
+        except TypeError:
+            raise ValueError(f"dtype must be float32 or float64, got {dtype!r}") from None
+        if dtype not in [np.dtype(d) for d in DTYPES]:
+            raise ValueError(f"dtype must be float32 or float64, got {dtype}")
         hint = "; drop events without depth before building the volume"
         pts = _finite_array("points", points, (None, 3), np.float64, hint)
         times = _finite_array("dt", dt, (pts.shape[0],), np.float64, hint)
