@@ -8,7 +8,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from omegaconf import OmegaConf
 
+from spatialseg.config import conf_dir
 from tests.test_cli import spatialseg
 
 FAST = ("window.events=3000", "output.plots=false")
@@ -38,7 +40,8 @@ def test_single_run_is_one_mlflow_run(tmp_path):
     assert res.returncode == 0, res.stderr
     (run,) = _runs(db)
     assert run.info.status == "FINISHED"
-    assert run.data.params["clustering.evals_per_step"] == "100"
+    default = OmegaConf.load(conf_dir() / "config.yaml").clustering.evals_per_step
+    assert run.data.params["clustering.evals_per_step"] == str(default)
     assert run.data.params["window.events"] == "3000"
     result = json.loads((out / "result.json").read_text())
     assert run.data.metrics["iterations"] == result["iterations"]
