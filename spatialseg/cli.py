@@ -13,10 +13,12 @@ import os
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import hydra
+import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
 from hydra.types import RunMode
@@ -67,8 +69,8 @@ def _report(summary: dict[str, Any], out_dir: Path) -> None:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Validate the config, segment the scene, write the outputs; return result.json's content."""
-    from spatialseg.depth import prepare_recording
-    from spatialseg.pipeline import log_iteration, segment_recording
+    from spatialseg.depth import denoised, with_configured_depth
+    from spatialseg.pipeline import log_iteration, segment_recording, with_dropped_events
     from spatialseg.results import summarise, write_outputs
     from spatialseg.scenes import load_scene
     from spatialseg.tracking import record
@@ -77,13 +79,18 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     start = time.perf_counter()
     plain = OmegaConf.to_container(cfg, resolve=True)
+    if cfg.scene.get("stream"):
+        return run_stream(cfg, plain, out_dir)
     recording = load_scene(cfg.scene, seed=int(cfg.seed), window_events=int(cfg.window.events))
-    recording = prepare_recording(recording, plain)
+    kept, keep = denoised(recording, plain)
+    kept = with_configured_depth(kept, plain)
     timings = {"load": time.perf_counter() - start}
     optimizer = build_optimizer(cfg)
     progress = log_iteration if cfg.output.progress else None
     begin = time.perf_counter()
-    seg = segment_recording(recording, plain, optimizer, seed=int(cfg.seed), on_iteration=progress)
+    seg = segment_recording(kept, plain, optimizer, seed=int(cfg.seed), on_iteration=progress)
+    seg = with_dropped_events(seg, keep)  # outputs cover every input event, in order
+    recording = kept if keep is None else replace(recording, depth_maps=kept.depth_maps)
     timings["segment"] = time.perf_counter() - begin
     timings["total"] = time.perf_counter() - start
     summary = summarise(recording, seg, plain, timings)
@@ -92,6 +99,65 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
         save_result_figures(out_dir, recording, seg)
     write_outputs(out_dir, seg, summary)
+    record(cfg, summary, out_dir)
+    _report(summary, out_dir)
+    return summary
+
+
+def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+    """``scene.stream=true``: read, segment and write the file window by window, holding one
+    window in memory; the outputs are those of any run except the figures and metrics."""
+    from spatialseg.depth import denoised, with_configured_depth
+    from spatialseg.pipeline import segment_recording, with_dropped_events
+    from spatialseg.results import ArrayStream, window_summary, write_json
+    from spatialseg.scenes import stream_scene
+    from spatialseg.tracking import record
+
+    start = time.perf_counter()
+    if plain["depth"]["name"] in ("recording", "onnx"):
+        raise ValueError(
+            f"scene.stream=true makes depth maps per window without images: use "
+            f"depth=constant or depth=ground_plane, not depth={plain['depth']['name']}"
+        )
+    k = int(cfg.n_clusters)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    labels = ArrayStream(out_dir / "labels.npy", np.int64)
+    probabilities = ArrayStream(out_dir / "probabilities.npy", np.float32, k)
+    optimizer, windows = build_optimizer(cfg), []
+    try:
+        stream = stream_scene(plain["scene"], window_events=int(cfg.window.events))
+        for w, window in enumerate(stream):
+            kept, keep = denoised(window, plain)
+            seed = int(np.random.default_rng([int(cfg.seed), w]).integers(2**31 - 1))
+            seg = segment_recording(with_configured_depth(kept, plain), plain, optimizer, seed=seed)
+            seg = with_dropped_events(seg, keep)
+            labels.append(seg.labels)
+            probabilities.append(seg.probabilities)
+            windows += [window_summary(res, None, None) for res in seg.windows]
+            elapsed = time.perf_counter() - start
+            log.info("window %d: %d events, %.1f s", w, len(window.events), elapsed)
+        if not windows:
+            raise ValueError(f"{cfg.scene.path or cfg.scene.name}: the file has no events")
+    except BaseException:
+        labels.abort()
+        probabilities.abort()
+        raise
+    summary = {
+        "scene": str(cfg.scene.name),
+        "n_events": labels.rows,
+        "n_clusters": k,
+        "model": plain["model"]["name"],
+        "objective": plain["objective"]["name"],
+        "optimizer": plain["optimizer"].get("_target_", ""),
+        "stream": True,
+        **{key: windows[0][key] for key in ("clusters", "units", "iterations", "converged")},
+        "stop_reason": windows[0]["stop_reason"],
+        "timings": {"total": round(time.perf_counter() - start, 6)},
+        "windows": windows,
+    }
+    labels.finish()
+    probabilities.finish()
+    write_json(out_dir / "result.json", summary)
     record(cfg, summary, out_dir)
     _report(summary, out_dir)
     return summary

@@ -36,9 +36,11 @@ __all__ = [
     "OnnxDepth",
     "RecordingDepth",
     "attach_depth",
+    "denoised",
     "make_depth_source",
     "prepare_recording",
     "resize_bilinear",
+    "with_configured_depth",
 ]
 
 log = logging.getLogger(__name__)
@@ -494,30 +496,38 @@ def attach_depth(recording: Recording, source: DepthSource, *, window_events: in
     return replace(recording, depth_maps=maps)
 
 
-def prepare_recording(recording: Recording, cfg: Mapping[str, Any]) -> Recording:
-    """What a scene loader applies to a loaded recording: the ``denoise`` filter, then depth.
-
-    With ``denoise.enabled`` the unsupported events (and their ground-truth rows) are
-    dropped; then :func:`attach_depth` with the ``depth`` source (``window.events`` sets the
-    window length when there are no keyframes). Missing sections mean no denoising and
-    ``depth=recording``.
-    """
+def denoised(recording: Recording, cfg: Mapping[str, Any]) -> tuple[Recording, np.ndarray | None]:
+    """The recording without the events the ``denoise`` filter rejects (and their
+    ground-truth rows), and the keep-mask over the input events (None when the filter is
+    off), so that a caller can label the dropped events -1 in the input order."""
     den = cfg.get("denoise") or {}
     enabled = den.get("enabled", False)
     if not isinstance(enabled, bool):
         raise ValueError(f"denoise.enabled must be true or false, got {enabled!r}")
-    if enabled:
-        keep = denoise_mask(recording.events, radius=den.get("radius"), window=den.get("window"))
-        n = len(keep)
-        log.info("denoise: kept %d of %d events (%.1f %%)", keep.sum(), n, 100 * keep.mean())
-        if n and not keep.any():
-            raise ValueError(
-                f"{recording.name}: denoise removed all {n} events; raise denoise.window "
-                "or denoise.radius, or set denoise.enabled=false"
-            )
-        recording = recording.select(keep)
+    if not enabled:
+        return recording, None
+    keep = denoise_mask(recording.events, radius=den.get("radius"), window=den.get("window"))
+    n = len(keep)
+    log.info("denoise: kept %d of %d events (%.1f %%)", keep.sum(), n, 100 * keep.mean())
+    if n and not keep.any():
+        raise ValueError(
+            f"{recording.name}: denoise removed all {n} events; raise denoise.window "
+            "or denoise.radius, or set denoise.enabled=false"
+        )
+    return recording.select(keep), keep
+
+
+def with_configured_depth(recording: Recording, cfg: Mapping[str, Any]) -> Recording:
+    """:func:`attach_depth` with the ``depth`` config (``window.events`` sets the window
+    length for sources that read no images); a missing section means ``depth=recording``."""
     source = make_depth_source(cfg.get("depth") or {"name": "recording"})
     window = cfg.get("window") or {}
     return attach_depth(
         recording, source, window_events=window.get("events", len(recording.events))
     )
+
+
+def prepare_recording(recording: Recording, cfg: Mapping[str, Any]) -> Recording:
+    """What a scene loader applies to a loaded recording: the ``denoise`` filter
+    (:func:`denoised`), then depth (:func:`with_configured_depth`)."""
+    return with_configured_depth(denoised(recording, cfg)[0], cfg)

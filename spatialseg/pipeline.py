@@ -451,6 +451,19 @@ def segment_recording(
     return SegmentationResult(labels, probabilities, results, indices)
 
 
+def with_dropped_events(seg: SegmentationResult, keep: np.ndarray | None) -> SegmentationResult:
+    """``seg`` of the events ``keep`` selected, over all input events: dropped events (e.g.
+    by the denoise filter) get label -1 and zero memberships, indices point into the input."""
+    if keep is None:
+        return seg
+    kept = np.flatnonzero(keep)
+    labels = np.full(keep.shape[0], -1, dtype=np.int64)
+    labels[kept] = seg.labels
+    probabilities = np.zeros((keep.shape[0], seg.probabilities.shape[1]), dtype=np.float32)
+    probabilities[kept] = seg.probabilities
+    return SegmentationResult(labels, probabilities, seg.windows, [kept[i] for i in seg.indices])
+
+
 def log_iteration(record: IterationRecord) -> None:
     """Progress line per outer iteration."""
     log.info(

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -18,10 +19,10 @@ from spatialseg.metrics import segmentation_metrics
 from spatialseg.pipeline import SegmentationResult, WindowResult
 from spatialseg.recording import Recording
 
-__all__ = ["summarise", "write_outputs"]
+__all__ = ["ArrayStream", "summarise", "window_summary", "write_json", "write_outputs"]
 
 
-def _window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) -> dict[str, Any]:
+def window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) -> dict[str, Any]:
     """JSON-ready description of one window: clusters, convergence, curves, metrics."""
     c = res.clustering
     counts = np.bincount(res.labels[res.labels >= 0], minlength=c.thetas.shape[0])
@@ -73,7 +74,7 @@ def summarise(
     windows = []
     for res, index in zip(seg.windows, seg.indices, strict=True):
         truth = gt.labels[index] if gt is not None else None
-        windows.append(_window_summary(res, truth, gt.motions if gt is not None else None))
+        windows.append(window_summary(res, truth, gt.motions if gt is not None else None))
     first = windows[0]
     summary = {
         "scene": recording.name,
@@ -116,6 +117,51 @@ def write_outputs(out_dir: Path, seg: SegmentationResult, summary: Mapping[str, 
     )
     _atomic_save(labels, lambda f: np.save(f, seg.labels.astype(np.int64)))
     _atomic_save(probs, lambda f: np.save(f, seg.probabilities.astype(np.float32)))
-    text = json.dumps(summary, indent=2).encode()
-    _atomic_save(result, lambda f: f.write(text))
+    write_json(result, summary)
     return [labels, probs, result]
+
+
+def write_json(path: Path, summary: Mapping[str, Any]) -> None:
+    """Write ``result.json`` atomically (the last file of a run)."""
+    text = json.dumps(summary, indent=2).encode()
+    _atomic_save(path, lambda f: f.write(text))
+
+
+class ArrayStream:
+    """Rows appended window by window to a temporary file, then written as one ``.npy``
+    (atomically, copied in blocks), so a streamed run never holds all labels in memory."""
+
+    def __init__(self, path: Path, dtype: Any, width: int | None = None) -> None:
+        self.path, self.dtype, self.width, self.rows = path, np.dtype(dtype), width, 0
+        self._raw_path = path.with_name(f".{path.name}.raw")
+        self._raw = open(self._raw_path, "wb")  # noqa: SIM115 (closed by finish)
+
+    def append(self, rows: np.ndarray) -> None:
+        """Append rows (N, or N x width) in the stream's dtype."""
+        block = np.ascontiguousarray(rows, dtype=self.dtype)
+        self._raw.write(block.tobytes())
+        self.rows += len(block)
+
+    def abort(self) -> None:
+        """Drop the appended rows (a failed run leaves no partial output)."""
+        self._raw.close()
+        self._raw_path.unlink(missing_ok=True)
+
+    def finish(self) -> Path:
+        """Write the ``.npy`` from the appended rows and remove the temporary file."""
+        self._raw.close()
+        shape = (self.rows,) if self.width is None else (self.rows, self.width)
+        header = {
+            "descr": np.lib.format.dtype_to_descr(self.dtype),
+            "fortran_order": False,
+            "shape": shape,
+        }
+
+        def write(f: Any) -> None:
+            np.lib.format.write_array_header_1_0(f, header)
+            with open(self._raw_path, "rb") as raw:
+                shutil.copyfileobj(raw, f, 1 << 20)
+
+        _atomic_save(self.path, write)
+        self._raw_path.unlink()
+        return self.path

@@ -9,13 +9,13 @@ nominal pinhole of ``fov_deg``.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 from spatialseg.recording import Camera, Recording
 
-__all__ = ["load_scene", "packaged_data"]
+__all__ = ["load_scene", "packaged_data", "stream_scene"]
 
 _CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 _DATA_DIR = Path(__file__).resolve().parent / "data"
@@ -81,3 +81,26 @@ def load_scene(scene: Mapping[str, Any], *, seed: int, window_events: int) -> Re
         )
         return recording
     raise ValueError(f"scene kind {kind!r} is not 'simulated' or 'recording'; fix the scene YAML")
+
+
+def stream_scene(scene: Mapping[str, Any], *, window_events: int) -> Iterator[Recording]:
+    """A ``kind: recording`` scene's file as recordings of ``window_events`` events each,
+    read one after the other (:func:`spatialseg.io.iter_event_chunks`), so a file larger
+    than memory can be segmented window by window. They carry no depth maps and no
+    keyframes; the camera is ``scene.camera`` or a nominal pinhole of ``scene.fov_deg``."""
+    from spatialseg.io import iter_event_chunks, nominal_camera
+
+    if scene.get("kind") != "recording":
+        raise ValueError("scene.stream=true reads a file: it needs a kind: recording scene")
+    camera, fov = _scene_camera(scene), scene.get("fov_deg")
+    if camera is None and fov is None:
+        raise ValueError(
+            "scene.stream=true needs the camera: give scene.camera={fx, fy, cx, cy, width, "
+            "height} or scene.fov_deg"
+        )
+    path = _scene_path(scene)
+    size = {} if camera is None else {"width": camera.width, "height": camera.height}
+    for chunk in iter_event_chunks(path, int(window_events), **size):
+        if camera is None:
+            camera = nominal_camera(chunk.width, chunk.height, float(fov))
+        yield Recording(chunk, camera, name=path.stem)

@@ -79,3 +79,61 @@ def test_recording_with_ground_truth_reports_metrics(recording_dir, tmp_path):
     assert res.returncode == 0, res.stderr
     result = json.loads((out / "result.json").read_text())
     assert result["units"] == "px/s" and 0.0 <= result["metrics"]["accuracy"] <= 1.0
+
+
+def test_denoised_run_labels_every_input_event_in_order(recording_dir, tmp_path):
+    """denoise.enabled: rejected events stay in labels.npy, as -1, at their input positions."""
+    from spatialseg.denoise import denoise_mask
+    from spatialseg.io import read_recording
+
+    out = tmp_path / "run"
+    res = spatialseg(
+        "+scene=recording",
+        f"scene.path={recording_dir}",
+        "denoise.enabled=true",
+        "denoise.window=0.002",
+        "tracking=none",
+        "output.plots=false",
+        f"hydra.run.dir={out}",
+        cwd=tmp_path,
+    )
+    assert res.returncode == 0, res.stderr
+    events = read_recording(recording_dir).events
+    labels = np.load(out / "labels.npy")
+    assert labels.shape == (len(events),)
+    dropped = ~denoise_mask(events, radius=1, window=0.002)
+    assert dropped.any() and np.all(labels[dropped] == -1)
+    assert np.all(np.load(out / "probabilities.npy")[dropped] == 0)
+    assert (labels[~dropped] >= 0).mean() > 0.9
+
+
+def test_streamed_run_segments_window_by_window(recording_dir, tmp_path):
+    """scene.stream=true: windows of window.events read one at a time; outputs cover all."""
+    from spatialseg.io import read_recording
+
+    out = tmp_path / "run"
+    common = ("+scene=recording", f"scene.path={recording_dir}", "scene.stream=true")
+    res = spatialseg(
+        *common,
+        "scene.fov_deg=60",
+        "depth=constant",
+        "window.events=1000",
+        "tracking=none",
+        f"hydra.run.dir={out}",
+        cwd=tmp_path,
+    )
+    assert res.returncode == 0, res.stderr
+    n = len(read_recording(recording_dir).events)
+    result = json.loads((out / "result.json").read_text())
+    assert result["stream"] and result["n_events"] == n
+    assert len(result["windows"]) == -(-n // 1000)
+    sizes = [w["n_events"] for w in result["windows"]]
+    assert sum(sizes) == n and set(sizes[:-1]) == {1000} and sizes[-1] <= 1000
+    assert np.load(out / "labels.npy").shape == (n,)
+    assert np.load(out / "probabilities.npy").shape == (n, 2)
+    assert not list(out.glob(".*.raw"))
+    bad = spatialseg(*common, "scene.fov_deg=60", f"hydra.run.dir={tmp_path / 'bad'}", cwd=tmp_path)
+    assert bad.returncode == 2 and "use depth=constant or depth=ground_plane" in bad.stderr
+    assert not (tmp_path / "bad" / "labels.npy").exists()
+    nocam = spatialseg(*common, "depth=constant", f"hydra.run.dir={tmp_path / 'c'}", cwd=tmp_path)
+    assert nocam.returncode == 2 and "needs the camera" in nocam.stderr

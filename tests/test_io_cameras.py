@@ -25,10 +25,12 @@ from spatialseg.io import (
 from spatialseg.recording import Camera, DepthMap, Recording
 from spatialseg.scenes import load_scene, packaged_data
 
-from .conftest import REPO, SHARED
+from .conftest import REPO
 
-REAL = SHARED / "data" / "davis346-road-cars.aedat4"
 PACKAGED = "road_cars/davis346-road-cars.aedat4"
+#: The real recording as shipped in the package (its sha256 is checked below), so the
+#: tests do not depend on ../shared beside the checkout.
+REAL = packaged_data(PACKAGED)
 REAL_SHA256 = "b383462d72122c69fd96ebf095c384e3f1a2f092cc1b2681be52ebc1d260cf8a"
 W, H = 640, 480
 CAMERA = Camera(300.0, 300.0, 319.5, 239.5, W, H)
