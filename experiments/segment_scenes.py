@@ -21,7 +21,7 @@ from _common import compose_config, simulated_scenes, write_json
 from hydra.utils import instantiate
 
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.pipeline import segment_recording
+from spatialseg.pipeline import segment_loaded
 from spatialseg.scenes import load_scene
 
 N_CLUSTERS = {"three": 3}
@@ -37,7 +37,7 @@ def run_one(scene: str, variant: str, seed: int, events: int) -> dict:
     )
     rec = load_scene(cfg["scene"], seed=seed, window_events=events)
     start = time.perf_counter()
-    seg = segment_recording(rec, cfg, instantiate(cfg["optimizer"]), seed=seed)
+    rec, seg = segment_loaded(rec, cfg, instantiate(cfg["optimizer"]), seed=seed)
     seconds = time.perf_counter() - start
     w = seg.windows[0]
     thetas = np.zeros((k, 3))

@@ -13,7 +13,6 @@ import os
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -69,8 +68,7 @@ def _report(summary: dict[str, Any], out_dir: Path) -> None:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Validate the config, segment the scene, write the outputs; return result.json's content."""
-    from spatialseg.depth import denoised, with_configured_depth
-    from spatialseg.pipeline import log_iteration, segment_recording, with_dropped_events
+    from spatialseg.pipeline import log_iteration, segment_loaded
     from spatialseg.results import summarise, write_outputs
     from spatialseg.scenes import load_scene
     from spatialseg.tracking import record
@@ -82,15 +80,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     if cfg.scene.get("stream"):
         return run_stream(cfg, plain, out_dir)
     recording = load_scene(cfg.scene, seed=int(cfg.seed), window_events=int(cfg.window.events))
-    kept, keep = denoised(recording, plain)
-    kept = with_configured_depth(kept, plain)
     timings = {"load": time.perf_counter() - start}
     optimizer = build_optimizer(cfg)
     progress = log_iteration if cfg.output.progress else None
     begin = time.perf_counter()
-    seg = segment_recording(kept, plain, optimizer, seed=int(cfg.seed), on_iteration=progress)
-    seg = with_dropped_events(seg, keep)  # outputs cover every input event, in order
-    recording = kept if keep is None else replace(recording, depth_maps=kept.depth_maps)
+    recording, seg = segment_loaded(
+        recording, plain, optimizer, seed=int(cfg.seed), on_iteration=progress
+    )
     timings["segment"] = time.perf_counter() - begin
     timings["total"] = time.perf_counter() - start
     summary = summarise(recording, seg, plain, timings)
@@ -107,9 +103,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[str, Any]:
     """``scene.stream=true``: read, segment and write the file window by window, holding one
     window in memory; the outputs are those of any run except the figures and metrics."""
-    from spatialseg.depth import denoised, with_configured_depth
-    from spatialseg.pipeline import segment_recording, with_dropped_events
-    from spatialseg.results import ArrayStream, window_summary, write_json
+    from spatialseg.pipeline import segment_loaded
+    from spatialseg.results import ArrayStream, run_summary, window_summary, write_json
     from spatialseg.scenes import stream_scene
     from spatialseg.tracking import record
 
@@ -127,10 +122,8 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
     try:
         stream = stream_scene(plain["scene"], window_events=int(cfg.window.events))
         for w, window in enumerate(stream):
-            kept, keep = denoised(window, plain)
             seed = int(np.random.default_rng([int(cfg.seed), w]).integers(2**31 - 1))
-            seg = segment_recording(with_configured_depth(kept, plain), plain, optimizer, seed=seed)
-            seg = with_dropped_events(seg, keep)
+            _, seg = segment_loaded(window, plain, optimizer, seed=seed)
             labels.append(seg.labels)
             probabilities.append(seg.probabilities)
             windows += [window_summary(res, None, None) for res in seg.windows]
@@ -142,19 +135,9 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
         labels.abort()
         probabilities.abort()
         raise
-    summary = {
-        "scene": str(cfg.scene.name),
-        "n_events": labels.rows,
-        "n_clusters": k,
-        "model": plain["model"]["name"],
-        "objective": plain["objective"]["name"],
-        "optimizer": plain["optimizer"].get("_target_", ""),
-        "stream": True,
-        **{key: windows[0][key] for key in ("clusters", "units", "iterations", "converged")},
-        "stop_reason": windows[0]["stop_reason"],
-        "timings": {"total": round(time.perf_counter() - start, 6)},
-        "windows": windows,
-    }
+    timings = {"total": time.perf_counter() - start}
+    summary = run_summary(str(cfg.scene.name), labels.rows, plain, windows, timings)
+    summary["stream"] = True
     labels.finish()
     probabilities.finish()
     write_json(out_dir / "result.json", summary)

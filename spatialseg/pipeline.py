@@ -35,6 +35,7 @@ __all__ = [
     "assign_labels",
     "prepare",
     "search_bounds",
+    "segment_loaded",
     "segment_recording",
     "segment_window",
 ]
@@ -462,6 +463,27 @@ def with_dropped_events(seg: SegmentationResult, keep: np.ndarray | None) -> Seg
     probabilities = np.zeros((keep.shape[0], seg.probabilities.shape[1]), dtype=np.float32)
     probabilities[kept] = seg.probabilities
     return SegmentationResult(labels, probabilities, seg.windows, [kept[i] for i in seg.indices])
+
+
+def segment_loaded(
+    recording: Recording,
+    cfg: Mapping[str, Any],
+    optimizer: Any,
+    *,
+    seed: int,
+    on_iteration: Any = None,
+) -> tuple[Recording, SegmentationResult]:
+    """A loaded recording through the ``denoise`` filter, the ``depth`` source and
+    :func:`segment_recording`; the result covers every input event (dropped ones -1). Also
+    returns the recording the result describes: the input with the depth maps used."""
+    from spatialseg.depth import denoised, with_configured_depth
+
+    kept, keep = denoised(recording, cfg)
+    kept = with_configured_depth(kept, cfg)
+    seg = segment_recording(kept, cfg, optimizer, seed=seed, on_iteration=on_iteration)
+    if keep is None:
+        return kept, seg
+    return replace(recording, depth_maps=kept.depth_maps), with_dropped_events(seg, keep)
 
 
 def log_iteration(record: IterationRecord) -> None:

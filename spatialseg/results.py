@@ -19,7 +19,14 @@ from spatialseg.metrics import segmentation_metrics
 from spatialseg.pipeline import SegmentationResult, WindowResult
 from spatialseg.recording import Recording
 
-__all__ = ["ArrayStream", "summarise", "window_summary", "write_json", "write_outputs"]
+__all__ = [
+    "ArrayStream",
+    "run_summary",
+    "summarise",
+    "window_summary",
+    "write_json",
+    "write_outputs",
+]
 
 
 def window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) -> dict[str, Any]:
@@ -75,10 +82,25 @@ def summarise(
     for res, index in zip(seg.windows, seg.indices, strict=True):
         truth = gt.labels[index] if gt is not None else None
         windows.append(window_summary(res, truth, gt.motions if gt is not None else None))
+    summary = run_summary(recording.name, len(recording.events), cfg, windows, timings)
+    if gt is not None:
+        summary["metrics"] = _aggregate_metrics(windows)
+    return summary
+
+
+def run_summary(
+    name: str,
+    n_events: int,
+    cfg: Mapping[str, Any],
+    windows: list[dict[str, Any]],
+    timings: Mapping[str, float],
+) -> dict[str, Any]:
+    """The run-level fields of ``result.json`` around the per-window summaries; the first
+    window's clusters and convergence are repeated at the top level."""
     first = windows[0]
-    summary = {
-        "scene": recording.name,
-        "n_events": len(recording.events),
+    return {
+        "scene": name,
+        "n_events": int(n_events),
         "n_clusters": int(cfg["n_clusters"]),
         "model": cfg["model"]["name"],
         "objective": cfg["objective"]["name"],
@@ -87,9 +109,6 @@ def summarise(
         "timings": {k: round(float(v), 6) for k, v in timings.items()},
         "windows": windows,
     }
-    if gt is not None:
-        summary["metrics"] = _aggregate_metrics(windows)
-    return summary
 
 
 def _aggregate_metrics(windows: list[dict[str, Any]]) -> dict[str, Any]:
