@@ -4,10 +4,12 @@
     python experiments/bench_kernels.py --sizes 1e4 1e7 --dtypes float32 --json out.json
 
 For each size and storage dtype it times ``value`` (objective), ``value_and_grad``
-(objective + gradient) and ``sample`` (P-step: vote V, then interpolate it at every event)
-of :class:`spatialseg.volume.VolumeObjective`, and the same three quantities from
-:mod:`spatialseg.reference` in the same run (up to ``--reference-max`` events), on random
-events filling a ``--grid`` volume and warped by a few voxels. Prints a table, writes JSON.
+(objective + gradient) and ``smoothed_sample`` (P-step: vote V, smooth it by
+``--p-step-sigma`` voxels, interpolate it at every event) of
+:class:`spatialseg.volume.VolumeObjective`, and the same three quantities from
+:mod:`spatialseg.reference` (smoothing by ``scipy.ndimage.gaussian_filter``) in the same run
+(up to ``--reference-max`` events), on random events filling a ``--grid`` volume and warped
+by a few voxels. Prints a table, writes JSON.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from pathlib import Path
 
 import numba
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from spatialseg import reference as ref
 from spatialseg.grid import VoxelGrid
@@ -40,6 +43,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=1, help="numba threads")
     parser.add_argument("--shift", type=float, default=3.0, help="largest warp, in voxels")
     parser.add_argument("--reference-max", type=float, default=1e6, help="largest reference N")
+    parser.add_argument("--p-step-sigma", type=float, default=3.0, help="P-step smoothing, voxels")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=Path("outputs/bench_kernels.json"))
     return parser.parse_args()
@@ -77,15 +81,20 @@ def bench_size(n: int, dtype: str, grid: VoxelGrid, args: argparse.Namespace) ->
     kernels = {
         "objective": lambda: ev.value(theta),
         "objective+gradient": lambda: ev.value_and_grad(theta),
-        "P-step": lambda: ev.sample(theta),
+        "P-step": lambda: ev.smoothed_sample(theta, args.p_step_sigma),
     }
     # the reference on the same (rounded) inputs
     p, t, w = (a.astype(dtype).astype(np.float64) for a in (points, dt, weights))
     references = {
         "objective": lambda: ref.value(p, t, theta, grid, w, args.objective),
         "objective+gradient": lambda: ref.value_and_grad(p, t, theta, grid, w, args.objective),
-        "P-step": lambda: ref.sample(p, t, theta, grid, ref.volume(p, t, theta, grid, w)),
+        "P-step": lambda: ref.sample(p, t, theta, grid, smoothed(ref.volume(p, t, theta, grid, w))),
     }
+    sigmas = [args.p_step_sigma if n > 1 else 0.0 for n in grid.shape]
+
+    def smoothed(volume: np.ndarray) -> np.ndarray:
+        return gaussian_filter(volume, sigmas, mode="constant")
+
     rows = []
     for op in OPERATIONS:
         times, result = timed(kernels[op], args.repeats)

@@ -35,7 +35,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 from numba import njit
-from scipy.ndimage import gaussian_filter
+
+from spatialseg.smoothing import gaussian_smooth
 
 __all__ = [
     "MomentObjective",
@@ -93,7 +94,7 @@ class Objective(ABC):
     def smooth(self, volume: np.ndarray, out: np.ndarray) -> np.ndarray:
         """Apply the symmetric blur ``K`` (zero padding; axes of one voxel are left alone)."""
         sigma = [self.blur_sigma if n > 1 else 0.0 for n in volume.shape]
-        return gaussian_filter(volume, sigma=sigma, output=out, mode="constant", cval=0.0)
+        return gaussian_smooth(volume, sigma, out=out)
 
     @abstractmethod
     def value(self, volume: np.ndarray) -> float:

@@ -127,9 +127,10 @@ class ModelEvaluator:
         """The volume of warped events for ``theta``."""
         return self.inner.volume(self._full(theta))
 
-    def sample(self, theta: np.ndarray, volume: np.ndarray) -> np.ndarray:
-        """``volume`` sampled at each event's position warped by ``theta`` (the P-step)."""
-        return self.inner.sample(self._full(theta), volume)
+    def smoothed_sample(self, theta: np.ndarray, sigma: float) -> np.ndarray:
+        """The volume for ``theta``, smoothed by ``sigma`` voxels, at each warped event (the
+        P-step)."""
+        return self.inner.smoothed_sample(self._full(theta), sigma)
 
 
 def _planar_points(window: Recording, xy_scale: float) -> Prepared:
@@ -392,6 +393,7 @@ def segment_window(
         tol=float(ccfg["tol"]),
         patience=int(ccfg["patience"]),
         target=None if ccfg["target"] is None else float(ccfg["target"]),
+        label_tol=None if ccfg["label_tol"] is None else float(ccfg["label_tol"]),
     )
     init_p = initial_memberships(
         prepared.grid.coordinates(prepared.points),

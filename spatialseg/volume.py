@@ -41,6 +41,7 @@ from numba import njit, prange
 
 from spatialseg.grid import VoxelGrid
 from spatialseg.objectives import MomentObjective, Objective, make_objective
+from spatialseg.smoothing import gaussian_smooth
 
 __all__ = ["VolumeObjective"]
 
@@ -384,6 +385,7 @@ class VolumeObjective:
         self._padded, self._cells, self._fracs = self._workspace()
         self._fused = isinstance(objective, MomentObjective) and not objective.smooths
         self._scratch: tuple[np.ndarray, np.ndarray] | None = None
+        self._pstep: tuple[np.ndarray, np.ndarray] | None = None
         self._batch: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         if weights is not None:
             self.set_weights(weights)
@@ -511,6 +513,30 @@ class VolumeObjective:
         """A copy of the raw VWE ``V(theta)`` (before any blur), shape ``grid.shape``."""
         with self._voted(theta):
             return self._interior(self._padded).copy()
+
+    def smoothed_sample(self, theta: np.ndarray, sigma: float) -> np.ndarray:
+        """``V(theta)`` smoothed by a Gaussian of ``sigma`` voxels (axes with one voxel left
+        alone; mirrored at the grid's border) and interpolated at each warped event (N,): the
+        P-step's ``c_j(x'_kj)``, in buffers reused from call to call.
+
+        Decision: mirrored rather than zero beyond the border, so a cluster whose events
+        crowd the border is not diluted there against one in the middle (zero boundaries
+        cost 6 % accuracy on a 4,000-event interior window).
+        """
+        if self._pstep is None:
+            self._pstep = tuple(np.empty(self.grid.shape, self.dtype) for _ in range(2))
+        raw, smooth = self._pstep
+        padded = self._scratch_volumes()[0]  # its halo is always zero
+        sigmas = [sigma if n > 1 else 0.0 for n in self.grid.shape]
+        sampled = np.empty(self.n_events)
+        with self._voted(theta) as (args, _):
+            raw[...] = self._interior(self._padded)
+            gaussian_smooth(raw, sigmas, out=smooth, work=raw, mode="reflect")
+            self._interior(padded)[...] = smooth
+            _sample(*args[:2], *args[3:], padded, self._cells, self._fracs, sampled)
+        out = np.empty_like(sampled)
+        out[self._order] = sampled
+        return out
 
     def sample(self, theta: np.ndarray, volume: np.ndarray | None = None) -> np.ndarray:
         """``volume`` (default: the raw ``V(theta)``) interpolated at each warped event (N,).

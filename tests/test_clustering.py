@@ -10,6 +10,8 @@ from omegaconf import OmegaConf
 import optimizers
 from spatialseg.clustering import (
     ConvergenceRules,
+    IterationRecord,
+    _stop_reason,
     initial_memberships,
     iterative_clustering,
     update_memberships,
@@ -41,6 +43,27 @@ def test_initial_memberships_flow_and_uniform():
 def test_convergence_rules_validate():
     with pytest.raises(ValueError, match="max_iterations"):
         ConvergenceRules(max_iterations=0, tol=1e-3, patience=1)
+    with pytest.raises(ValueError, match="label_tol must be in"):
+        ConvergenceRules(max_iterations=5, tol=1e-3, patience=1, label_tol=1.5)
+
+
+def _history(totals: list[float], changed: list[float]) -> list[IterationRecord]:
+    """Iteration records with the given total contrasts and shares of changed labels."""
+    return [
+        IterationRecord(i + 1, np.array([t]), np.zeros((1, 3)), 1, 0.0, c)
+        for i, (t, c) in enumerate(zip(totals, changed, strict=True))
+    ]
+
+
+def test_stable_labels_stop_the_loop_while_the_contrast_still_rises():
+    rules = ConvergenceRules(max_iterations=20, tol=1e-3, patience=2, label_tol=0.005)
+    rising = [1.0, 1.1, 1.2, 1.3]
+    assert _stop_reason(_history(rising, [0.3, 0.01, 0.004, 0.02]), rules) == ""
+    assert "labels changed < 0.005" in _stop_reason(
+        _history(rising, [0.3, 0.01, 0.004, 0.001]), rules
+    )
+    off = ConvergenceRules(max_iterations=20, tol=1e-3, patience=2)
+    assert _stop_reason(_history(rising, [0.3, 0.01, 0.004, 0.001]), off) == ""
 
 
 def _two_motion_cloud(rng: np.random.Generator):

@@ -7,6 +7,7 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+from scipy.ndimage import gaussian_filter
 
 from spatialseg import reference as ref
 from spatialseg.grid import VoxelGrid
@@ -278,3 +279,17 @@ def test_invalid_theta_raises():
         ev.batch_value(np.zeros(3))
     with pytest.raises(ValueError, match="volume must have shape 14 x 11 x 6"):
         ev.sample(np.zeros(3), np.zeros((2, 2, 2)))
+
+
+@GRIDS
+@pytest.mark.parametrize("sigma", [0.0, 1.5])
+def test_smoothed_sample_is_the_p_step_of_the_reference(grid, sigma):
+    """Vote, smooth (mirrored at the border), interpolate at each warped event; twice, as
+    the buffers are reused."""
+    points, dt, w = _events(400, seed=8, grid=grid)
+    ev = VolumeObjective(points, dt, grid, "variance", w)
+    sigmas = [sigma if n > 1 else 0.0 for n in grid.shape]
+    volume = gaussian_filter(ref.volume(points, dt, THETA, grid, w), sigmas, mode="reflect")
+    for _ in range(2):
+        _close(ev.smoothed_sample(THETA, sigma), ref.sample(points, dt, THETA, grid, volume), 1e-9)
+        assert not ev._padded.any()
