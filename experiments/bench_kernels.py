@@ -4,7 +4,7 @@
     python experiments/bench_kernels.py --sizes 1e4 1e7 --dtypes float32 --json out.json
 
 For each size and storage dtype it times ``value`` (objective), ``value_and_grad``
-(objective + gradient) and ``smoothed_sample`` (P-step: vote V, smooth it by
+(objective + gradient) and ``p_step`` (P-step: vote V, smooth it by
 ``--p-step-sigma`` voxels, interpolate it at every event) of
 :class:`spatialseg.volume.VolumeObjective`, and the same three quantities from
 :mod:`spatialseg.reference` (smoothing by ``scipy.ndimage.gaussian_filter``) in the same run
@@ -81,7 +81,7 @@ def bench_size(n: int, dtype: str, grid: VoxelGrid, args: argparse.Namespace) ->
     kernels = {
         "objective": lambda: ev.value(theta),
         "objective+gradient": lambda: ev.value_and_grad(theta),
-        "P-step": lambda: ev.smoothed_sample(theta, args.p_step_sigma),
+        "P-step": lambda: ev.p_step(theta, args.p_step_sigma)[0],
     }
     # the reference on the same (rounded) inputs
     p, t, w = (a.astype(dtype).astype(np.float64) for a in (points, dt, weights))

@@ -46,7 +46,7 @@ class ClusterEvaluator(Protocol):
     def value(self, theta: np.ndarray) -> float: ...
     def grad(self, theta: np.ndarray) -> np.ndarray: ...
     def batch_value(self, thetas: np.ndarray) -> np.ndarray: ...
-    def smoothed_sample(self, theta: np.ndarray, sigma: float) -> np.ndarray: ...
+    def p_step(self, theta: np.ndarray, sigma: float) -> tuple[np.ndarray, float]: ...
 
 
 class Maximizer(Protocol):
@@ -190,8 +190,8 @@ def _theta_step(
     bounds: np.ndarray,
     budget: int,
     seed: int,
-) -> tuple[np.ndarray, float, int]:
-    """Maximise one cluster's contrast from its current velocity; return (theta, value, evals)."""
+) -> tuple[np.ndarray, int]:
+    """Maximise one cluster's contrast from its current velocity; return (theta, evals)."""
     x0 = np.clip(theta, bounds[:, 0], bounds[:, 1])
     res = optimizer.maximize(
         evaluator.value,
@@ -202,18 +202,20 @@ def _theta_step(
         seed=seed,
         batch_fun=evaluator.batch_value,
     )
-    return np.asarray(res.x, dtype=np.float64), float(res.value), int(res.n_evals)
+    return np.asarray(res.x, dtype=np.float64), int(res.n_evals)
 
 
 def _responses(
     evaluator: ClusterEvaluator, thetas: np.ndarray, p: np.ndarray, sigma: float
-) -> np.ndarray:
-    """``c_j(x'_kj)``: each cluster's (smoothed) volume sampled at its warped events (N x K)."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """``c_j(x'_kj)``: each cluster's (smoothed) volume sampled at its warped events (N x K),
+    and each cluster's contrast over all events (K,), from the same votes."""
     responses = np.empty_like(p)
+    values = np.empty(len(thetas))
     for j, theta in enumerate(thetas):
         evaluator.set_weights(p[:, j])
-        responses[:, j] = evaluator.smoothed_sample(theta, sigma)
-    return responses
+        responses[:, j], values[j] = evaluator.p_step(theta, sigma)
+    return responses, values
 
 
 def iterative_clustering(
@@ -257,15 +259,13 @@ def iterative_clustering(
         for j in range(k):
             step_evaluator, subset = step or (evaluator, slice(None))
             step_evaluator.set_weights(p[subset, j])
-            thetas[j], values[j], n = _theta_step(
+            thetas[j], n = _theta_step(
                 step_evaluator, optimizer, thetas[j], bounds, evals_per_step, int(seeds[it, j])
             )
             evals += n
-            if step is not None:
-                evaluator.set_weights(p[:, j])
-                values[j] = evaluator.value(thetas[j])
         previous = p.argmax(axis=1)
-        p = update_memberships(_responses(evaluator, thetas, p, p_step_sigma))
+        responses, values = _responses(evaluator, thetas, p, p_step_sigma)
+        p = update_memberships(responses)
         changed = float(np.mean(p.argmax(axis=1) != previous)) if n_events else 0.0
         elapsed = time.perf_counter() - start
         record = IterationRecord(it + 1, values.copy(), thetas.copy(), evals, elapsed, changed)

@@ -36,13 +36,15 @@ class Lifted:
 
     ``valid`` (N,) marks the window's events that have a depth; ``depth`` (N,) is each
     event's depth in metres, NaN where unknown. ``points`` (M, 3) and ``t`` (M,) hold the
-    M = ``valid.sum()`` valid events in their original (time) order.
+    M = ``valid.sum()`` valid events in their original (time) order. ``on_edge`` (N,) marks
+    events at an occlusion edge (:func:`occlusion_edges`), whose depth is a guess.
     """
 
     points: np.ndarray
     t: np.ndarray
     valid: np.ndarray
     depth: np.ndarray
+    on_edge: np.ndarray
 
 
 def _known(z: np.ndarray) -> np.ndarray:
@@ -63,6 +65,18 @@ def _time_fraction(t: np.ndarray, t1: float, t2: float) -> np.ndarray:
     return np.clip((np.asarray(t, dtype=np.float64) - t1) / (t2 - t1), 0.0, 1.0)
 
 
+def occlusion_edges(z1: np.ndarray, z2: np.ndarray, edge_ratio: float | None) -> np.ndarray:
+    """Where two known depths of a pixel differ by more than ``edge_ratio`` times the nearer
+    one: an occlusion edge passed the pixel between the maps (None: nowhere)."""
+    z1 = np.asarray(z1, dtype=np.float64)
+    z2 = np.asarray(z2, dtype=np.float64)
+    if edge_ratio is None:
+        return np.zeros(z1.shape, dtype=bool)
+    both = _known(z1) & _known(z2)
+    near = np.where(both, np.minimum(z1, z2), 1.0)
+    return both & (np.abs(z2 - z1) > edge_ratio * near)
+
+
 def _interpolate(
     z1: np.ndarray, z2: np.ndarray, s: np.ndarray, edge_ratio: float | None = None
 ) -> np.ndarray:
@@ -81,10 +95,8 @@ def _interpolate(
     z = np.full(z1.shape, np.nan)
     both = k1 & k2
     z[both] = z1[both] + s[both] * (z2[both] - z1[both])
-    if edge_ratio is not None:
-        near = np.minimum(z1, z2)
-        edge = both & (np.abs(z2 - z1) > edge_ratio * np.where(both, near, 1.0))
-        z[edge] = near[edge]
+    edge = occlusion_edges(z1, z2, edge_ratio)
+    z[edge] = np.minimum(z1, z2)[edge]
     z[k1 & ~k2] = z1[k1 & ~k2]
     z[k2 & ~k1] = z2[k2 & ~k1]
     return z
@@ -191,6 +203,7 @@ def lift(
         raise ValueError(f"{window.name}: the window has no events; check the window bounds")
     first, second = _window_maps(window)
     depth = event_depth(ev, first, second, edge_ratio=edge_ratio)
+    on_edge = occlusion_edges(first.depth[ev.y, ev.x], second.depth[ev.y, ev.x], edge_ratio)
     missing = ~np.isfinite(depth)
     if unknown_depth == "fill" and missing.any():
         x, y = ev.x[missing], ev.y[missing]
@@ -204,7 +217,7 @@ def lift(
             f"maps {first.source} and {second.source} (NaN or <= 0 means unknown)"
         )
     points = back_project(ev.x[valid], ev.y[valid], depth[valid], window.camera)
-    return Lifted(points=points, t=ev.t[valid].copy(), valid=valid, depth=depth)
+    return Lifted(points=points, t=ev.t[valid].copy(), valid=valid, depth=depth, on_edge=on_edge)
 
 
 def voxel_size(

@@ -50,7 +50,8 @@ class Prepared:
     ``points`` (M x 3) are the usable events (``valid`` marks them among the window's N);
     ``dim`` is the number of velocity components the model estimates (3 spatial, 2 planar).
     ``search_extent`` (3,) is the extent the search box is measured on (:func:`search_bounds`);
-    None means the grid's.
+    None means the grid's. ``on_edge`` (M,) marks points whose depth came from an occlusion
+    edge (:func:`spatialseg.edpa.occlusion_edges`); None: no such points.
     """
 
     points: np.ndarray
@@ -60,6 +61,7 @@ class Prepared:
     dim: int
     units: str
     search_extent: np.ndarray | None = None
+    on_edge: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -127,10 +129,10 @@ class ModelEvaluator:
         """The volume of warped events for ``theta``."""
         return self.inner.volume(self._full(theta))
 
-    def smoothed_sample(self, theta: np.ndarray, sigma: float) -> np.ndarray:
-        """The volume for ``theta``, smoothed by ``sigma`` voxels, at each warped event (the
-        P-step)."""
-        return self.inner.smoothed_sample(self._full(theta), sigma)
+    def p_step(self, theta: np.ndarray, sigma: float) -> tuple[np.ndarray, float]:
+        """The volume for ``theta``, smoothed by ``sigma`` voxels, at each warped event, and
+        the contrast of the volume (the P-step)."""
+        return self.inner.p_step(self._full(theta), sigma)
 
 
 def _planar_points(window: Recording, xy_scale: float) -> Prepared:
@@ -235,7 +237,8 @@ def prepare(window: Recording, cfg: Mapping[str, Any]) -> Prepared:
     valid = lifted.valid.copy()
     valid[np.flatnonzero(valid)[~dense]] = False
     extent = _search_extent(lifted.points, grid, float(vol["margin"]))
-    return Prepared(points, lifted.t[dense], valid, grid, 3, "m/s", extent)
+    on_edge = lifted.on_edge[lifted.valid][dense]
+    return Prepared(points, lifted.t[dense], valid, grid, 3, "m/s", extent, on_edge)
 
 
 def _volume_grid(
@@ -325,20 +328,30 @@ def _step_subset(
     prepared: Prepared, t_ref: float, cfg: Mapping[str, Any], *, seed: int
 ) -> tuple[ModelEvaluator, np.ndarray] | None:
     """The theta-step's evaluator over at most ``clustering.step_events`` events drawn with
-    ``seed`` (and their indices), or None to optimise on all events.
+    ``seed`` (and their indices), or None to optimise on all events. Unless
+    ``clustering.step_edges``, events on occlusion edges are left out of the draw.
 
     Decision: the contrast's maximum is set by the motion, not by the event count, so the
     velocities can be found on a sample while the P-step labels every event; the cost of
     the theta-step then stops growing with the window (measured in docs/performance.md).
+    An event on an occlusion edge takes the nearer depth, which is wrong for the background
+    seen just after the occluder passed; such events biased the static scene's vz in
+    ``ego_street`` (docs/scenes.md), so they are labelled but do not steer the velocities.
     """
-    limit = cfg["clustering"]["step_events"]
-    n = prepared.points.shape[0]
-    if limit is None or n <= int(limit):
-        return None
-    if int(limit) < 1:
+    ccfg = cfg["clustering"]
+    limit = ccfg["step_events"]
+    if limit is not None and int(limit) < 1:
         raise ValueError(f"clustering.step_events must be >= 1 or null, got {limit}")
-    subset = np.sort(np.random.default_rng(seed).choice(n, int(limit), replace=False))
-    return _evaluator(prepared, t_ref, cfg, subset), subset
+    n = prepared.points.shape[0]
+    pool = np.arange(n)
+    if not ccfg["step_edges"] and prepared.on_edge is not None:
+        off_edge = np.flatnonzero(~prepared.on_edge)
+        pool = off_edge if len(off_edge) >= int(cfg["n_clusters"]) else pool
+    if len(pool) == n and (limit is None or n <= int(limit)):
+        return None
+    if limit is not None and len(pool) > int(limit):
+        pool = np.sort(np.random.default_rng(seed).choice(pool, int(limit), replace=False))
+    return _evaluator(prepared, t_ref, cfg, pool), pool
 
 
 def _evaluator(

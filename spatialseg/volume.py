@@ -460,13 +460,17 @@ class VolumeObjective:
         finally:
             _clear(*args, self._padded, self._cells)
 
+    def _voted_value(self, args: tuple, mass: float) -> float:
+        """The objective of the volume now in the buffer (inside :meth:`_voted`)."""
+        if self._fused:
+            total_sq = _weighted_sample_sum(*args, self._padded, self._cells, self._fracs)
+            return self.objective.from_moments(mass, total_sq, self.grid.n_voxels)[0]
+        return float(self.objective.value(self._smoothed()))
+
     def value(self, theta: np.ndarray) -> float:
         """The objective at ``theta``."""
         with self._voted(theta) as (args, mass):
-            if self._fused:
-                total_sq = _weighted_sample_sum(*args, self._padded, self._cells, self._fracs)
-                return self.objective.from_moments(mass, total_sq, self.grid.n_voxels)[0]
-            return float(self.objective.value(self._smoothed()))
+            return self._voted_value(args, mass)
 
     def value_and_grad(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         """The objective at ``theta`` and its analytic gradient ``dO/dtheta`` (3,)."""
@@ -514,10 +518,11 @@ class VolumeObjective:
         with self._voted(theta):
             return self._interior(self._padded).copy()
 
-    def smoothed_sample(self, theta: np.ndarray, sigma: float) -> np.ndarray:
+    def p_step(self, theta: np.ndarray, sigma: float) -> tuple[np.ndarray, float]:
         """``V(theta)`` smoothed by a Gaussian of ``sigma`` voxels (axes with one voxel left
         alone; mirrored at the grid's border) and interpolated at each warped event (N,): the
-        P-step's ``c_j(x'_kj)``, in buffers reused from call to call.
+        P-step's ``c_j(x'_kj)``; and the objective of ``V(theta)``, from the same vote. In
+        buffers reused from call to call.
 
         Decision: mirrored rather than zero beyond the border, so a cluster whose events
         crowd the border is not diluted there against one in the middle (zero boundaries
@@ -529,14 +534,15 @@ class VolumeObjective:
         padded = self._scratch_volumes()[0]  # its halo is always zero
         sigmas = [sigma if n > 1 else 0.0 for n in self.grid.shape]
         sampled = np.empty(self.n_events)
-        with self._voted(theta) as (args, _):
+        with self._voted(theta) as (args, mass):
+            value = self._voted_value(args, mass)
             raw[...] = self._interior(self._padded)
             gaussian_smooth(raw, sigmas, out=smooth, work=raw, mode="reflect")
             self._interior(padded)[...] = smooth
             _sample(*args[:2], *args[3:], padded, self._cells, self._fracs, sampled)
         out = np.empty_like(sampled)
         out[self._order] = sampled
-        return out
+        return out, value
 
     def sample(self, theta: np.ndarray, volume: np.ndarray | None = None) -> np.ndarray:
         """``volume`` (default: the raw ``V(theta)``) interpolated at each warped event (N,).

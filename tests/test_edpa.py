@@ -11,6 +11,7 @@ from spatialseg.edpa import (
     event_depth,
     fill_depth,
     lift,
+    occlusion_edges,
     voxel_size,
 )
 from spatialseg.events import EventStream
@@ -190,6 +191,18 @@ def test_occlusion_edges_take_the_nearer_depth():
     z1, z2, s = np.array([1.0, 1.0]), np.array([5.0, 1.1]), np.array([0.5, 0.5])
     assert np.allclose(_interpolate(z1, z2, s), [3.0, 1.05])
     assert np.allclose(_interpolate(z1, z2, s, edge_ratio=0.2), [1.0, 1.05])
+
+
+def test_lift_marks_the_events_on_occlusion_edges():
+    """Known in both maps and differing by more than edge_ratio x the nearer depth."""
+    z1 = np.array([1.0, 1.0, 2.0, NAN])
+    z2 = np.array([5.0, 1.1, 2.5, 1.0])
+    assert occlusion_edges(z1, z2, 0.2).tolist() == [True, False, True, False]
+    assert not occlusion_edges(z1, z2, None).any()
+    lifted = lift(_window(CASES), unknown_depth="drop", fill_radius=1, edge_ratio=0.2)
+    ev = _events(CASES)
+    expected = occlusion_edges(Z1[ev.y, ev.x], Z2[ev.y, ev.x], 0.2)
+    assert lifted.on_edge.tolist() == expected.tolist() and expected.any()
 
 
 def test_dense_depth_bands_leave_out_a_thin_distant_band():

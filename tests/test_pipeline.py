@@ -157,3 +157,20 @@ def test_moving_camera_static_scene_is_one_motion():
         accuracy[model] = segmentation_metrics(seg.labels, rec.ground_truth.labels)["accuracy"]
     assert accuracy["spatial"] >= 0.9
     assert accuracy["spatial"] > accuracy["planar"] + 0.15
+
+
+def test_events_on_occlusion_edges_do_not_steer_the_velocities():
+    """clustering.step_edges=false: the theta-step's events are all off the edges (the
+    approaching box passes in front of the wall)."""
+    from spatialseg.pipeline import _step_subset
+
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = OmegaConf.to_container(compose("config", overrides=["+scene=approach"]))
+    _, window = next(load_scene(cfg["scene"], seed=0, window_events=4000).windows())
+    prepared = prepare(window, cfg)
+    assert prepared.on_edge.any() and not prepared.on_edge.all()
+    evaluator, subset = _step_subset(prepared, 0.0, cfg, seed=0)
+    assert evaluator.n_events == len(subset) == int((~prepared.on_edge).sum())
+    assert not prepared.on_edge[subset].any()
+    edges_too = {**cfg, "clustering": {**cfg["clustering"], "step_edges": True}}
+    assert _step_subset(prepared, 0.0, edges_too, seed=0) is None  # all 4,000 events

@@ -283,13 +283,15 @@ def test_invalid_theta_raises():
 
 @GRIDS
 @pytest.mark.parametrize("sigma", [0.0, 1.5])
-def test_smoothed_sample_is_the_p_step_of_the_reference(grid, sigma):
-    """Vote, smooth (mirrored at the border), interpolate at each warped event; twice, as
-    the buffers are reused."""
+def test_p_step_is_the_references(grid, sigma):
+    """Vote, smooth (mirrored at the border), interpolate at each warped event, and the
+    contrast of the vote; twice, as the buffers are reused."""
     points, dt, w = _events(400, seed=8, grid=grid)
     ev = VolumeObjective(points, dt, grid, "variance", w)
     sigmas = [sigma if n > 1 else 0.0 for n in grid.shape]
     volume = gaussian_filter(ref.volume(points, dt, THETA, grid, w), sigmas, mode="reflect")
     for _ in range(2):
-        _close(ev.smoothed_sample(THETA, sigma), ref.sample(points, dt, THETA, grid, volume), 1e-9)
+        responses, value = ev.p_step(THETA, sigma)
+        _close(responses, ref.sample(points, dt, THETA, grid, volume), 1e-9)
+        _close(value, ref.value(points, dt, THETA, grid, w), 1e-9)
         assert not ev._padded.any()
