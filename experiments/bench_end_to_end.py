@@ -5,10 +5,12 @@
         nlopt_bobyqa multistart_lbfgs --events 15000 100000 --repeats 1      # ~3 min
     python experiments/bench_end_to_end.py --optimizers ssa_ga multistart_lbfgs \\
         --events 1e6 --repeats 1                                             # large, ~3 min
+    python experiments/bench_end_to_end.py --optimizers default default:+preset=fast
 
 Simulates the interior scene with N events, writes it as a recording directory, then
 times ``python -m spatialseg +scene=recording scene.path=DIR`` (2 clusters, default
-optimiser or each of ``--optimizers``, figures and MLflow tracking off) as a subprocess:
+optimiser or each of ``--optimizers``, each optionally followed by ``:`` and comma-separated
+overrides, figures and MLflow tracking off) as a subprocess:
 process start, imports, reading, EDPA, initialisation, clustering and writing the outputs.
 Reports the median wall time, the run's own stage timings from result.json (medians over
 the repeats), the evaluations spent, the accuracy, and the child process's peak RSS; the
@@ -106,8 +108,10 @@ def _segment(rec: Path, run: Path, optimizer: str, timeout: float) -> tuple[floa
         "tracking=none",
         f"hydra.run.dir={run}",
     ]
-    if optimizer != DEFAULT:
-        cmd.append(f"optimizer={optimizer}")
+    name, _, overrides = optimizer.partition(":")
+    if name != DEFAULT:
+        cmd.append(f"optimizer={name}")
+    cmd.extend(o for o in overrides.split(",") if o)
     run.parent.mkdir(parents=True, exist_ok=True)
     wall, peak = _run_child(cmd, run.parent, run.parent / f"{run.name}.log", timeout)
     return wall, peak, json.loads((run / "result.json").read_text())
@@ -173,7 +177,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         nargs="+",
         default=[DEFAULT],
         metavar="NAME",
-        help=f"conf/optimizer names ('{DEFAULT}': the config's); the first is the ratio base",
+        help=f"conf/optimizer names ('{DEFAULT}': the config's), each optionally with "
+        "':override,override'; the first is the ratio base",
     )
     parser.add_argument(
         "--dense-above",
@@ -187,7 +192,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.repeats < 1:
         parser.error(f"--repeats must be >= 1, got {args.repeats}")
     known = group_options("optimizer")
-    unknown = [o for o in args.optimizers if o != DEFAULT and o not in known]
+    names = [o.partition(":")[0] for o in args.optimizers]
+    unknown = [o for o in names if o != DEFAULT and o not in known]
     if unknown:
         parser.error(f"unknown optimizer {unknown[0]!r}; choose from {', '.join(known)}")
     return args
@@ -204,11 +210,9 @@ def main(argv: list[str] | None = None) -> None:
             rec = Path(tmp) / f"interior_{n}"
             sim_s = _simulate(rec, n, args.dense_above)
             first = None
-            for optimizer in args.optimizers:
+            for k, optimizer in enumerate(args.optimizers):
                 runs = [
-                    _segment(
-                        rec, Path(tmp) / f"run_{n}_{optimizer}" / str(i), optimizer, args.timeout
-                    )
+                    _segment(rec, Path(tmp) / f"run_{n}_{k}" / str(i), optimizer, args.timeout)
                     for i in range(args.repeats)
                 ]
                 row = summarise_runs(n, optimizer, runs, sim_s)

@@ -45,5 +45,9 @@ def test_end_to_end_rejects_unknown_optimizers_and_scales_dense_windows() -> Non
     """Unknown optimiser names exit 2; windows over --dense-above get a lower threshold."""
     with pytest.raises(SystemExit):
         bench_end_to_end.parse_args(["--optimizers", "ssa_ga", "no_such"])
+    with pytest.raises(SystemExit):
+        bench_end_to_end.parse_args(["--optimizers", "no_such:+preset=fast"])
+    ok = bench_end_to_end.parse_args(["--optimizers", "default", "default:+preset=fast"])
+    assert ok.optimizers == ["default", "default:+preset=fast"]
     assert bench_end_to_end.sensor_overrides(100000, 100000) == []
     assert "scene.sensor.threshold_mean=0.02" in bench_end_to_end.sensor_overrides(10**6, 10**5)
