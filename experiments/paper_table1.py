@@ -133,7 +133,10 @@ def run_scene_seed(
     scene: str, seed: int, events: int, max_evals: int, opts: dict[str, Any]
 ) -> list[dict]:
     """All optimisers on both flows of one simulated window; one record per run."""
-    cfg = compose_config(f"+scene={scene}", f"seed={seed}", "n_clusters=2")
+    # the flow-based start, as the paper: every optimiser starts from the same initial flows
+    cfg = compose_config(
+        f"+scene={scene}", f"seed={seed}", "n_clusters=2", "init.method=image_flow"
+    )
     rec = load_scene(cfg["scene"], seed=seed, window_events=events)
     window = next(iter(rec.windows()))[1]
     prepared = prepare(window, cfg)

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from spatialseg import edpa, motion_init
+from spatialseg import edpa, hypotheses, motion_init
 from spatialseg.clustering import (
     ClusteringResult,
     ConvergenceRules,
@@ -41,6 +41,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: init.method choices.
+INIT_METHODS = ("tiles", "image_flow", "time_surface")
 
 
 @dataclass(frozen=True, eq=False)
@@ -181,6 +184,64 @@ def _image_flow_init(
     )
 
 
+def named_optimizer(name: str) -> Any:
+    """The optimiser of ``conf/optimizer/<name>.yaml`` with its defaults."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from spatialseg.config import conf_dir, group_options
+
+    if name not in group_options("optimizer"):
+        raise ValueError(
+            f"unknown optimizer {name!r}; choose from {', '.join(group_options('optimizer'))}"
+        )
+    return instantiate(OmegaConf.load(conf_dir() / "optimizer" / f"{name}.yaml"))
+
+
+def _tiles_init(
+    window: Recording,
+    prepared: Prepared,
+    cfg: Mapping[str, Any],
+    k: int,
+    bounds: np.ndarray,
+    optimizer: Any,
+    *,
+    seed: int,
+) -> motion_init.InitResult | None:
+    """Initial motions from each image tile's own contrast maximum and a greedy cover
+    (:mod:`spatialseg.hypotheses`); None when fewer than ``k`` tiles are dense enough."""
+    params = cfg["init"]["tiles"]
+    t_ref = reference_time(prepared.t, cfg["volume"]["t_ref"])
+    events = window.events
+    xy = np.column_stack([events.x, events.y])[prepared.valid]
+    event_tile, counts = hypotheses.image_tiles(
+        xy, float(params["size"]), int(params["min_events"])
+    )
+    if len(counts) < k:
+        return None
+
+    def evaluator_for(index: np.ndarray) -> ModelEvaluator:
+        return _evaluator(prepared, t_ref, cfg, index)
+
+    tiles = hypotheses.Tiles(evaluator_for, event_tile, len(counts))
+    velocities, tile_label = hypotheses.tile_motions(
+        tiles,
+        counts,
+        k,
+        optimizer,
+        bounds,
+        named_optimizer(str(params["refit"])),
+        evals=int(params["evals"]),
+        rounds=int(params["rounds"]),
+        seed=seed,
+    )
+    thetas = np.zeros((k, 3))
+    thetas[:, : prepared.dim] = velocities
+    labels = np.where(event_tile >= 0, tile_label[np.maximum(event_tile, 0)], -1)
+    flows = np.full((len(labels), 3), np.nan)
+    return motion_init.InitResult(thetas, flows, 0, False, labels)
+
+
 def initialise(
     window: Recording,
     prepared: Prepared,
@@ -189,18 +250,30 @@ def initialise(
     bounds: np.ndarray,
     *,
     seed: int,
+    optimizer: Any = None,
 ) -> motion_init.InitResult:
-    """Initial motions by ``init.method``: ``image_flow`` (default) or ``time_surface``
-    (the paper's three planes; the only choice for the planar model's own 2-D space).
+    """Initial motions by ``init.method``: ``tiles`` (default; needs the run's
+    ``optimizer``), ``image_flow`` or ``time_surface`` (the paper's three planes; the
+    flow-based choice for the planar model's own 2-D space).
 
     ``bounds`` is the model's search box (:func:`search_bounds`); flows faster than it are
-    discarded."""
+    discarded. ``tiles`` falls back to ``image_flow`` when fewer than K tiles have enough
+    events."""
     params = dict(cfg["init"])
     method = params.pop("method")
+    params.pop("tiles")
+    if method not in INIT_METHODS:
+        raise ValueError(f"init.method must be one of {INIT_METHODS}, got {method!r}")
+    if method == "tiles":
+        if optimizer is None:
+            raise ValueError("init.method=tiles needs the run's optimizer")
+        init = _tiles_init(window, prepared, cfg, k, bounds, optimizer, seed=seed)
+        if init is not None:
+            return init
+        log.info("fewer than %d tiles with init.tiles.min_events events: flow init", k)
+        method = "image_flow"
     if method == "image_flow" and prepared.dim == 3:
         return _image_flow_init(window, prepared, k, params, seed=seed, bounds=bounds)
-    if method not in ("image_flow", "time_surface"):
-        raise ValueError(f"init.method must be 'image_flow' or 'time_surface', got {method!r}")
     grid = prepared.grid
     if grid.projection is not None:  # the paper's three planes are metric
         grid = _volume_grid(prepared.points, window.camera, cfg, "metric")
@@ -394,7 +467,7 @@ def segment_window(
 
     start = time.perf_counter()
     bounds = search_bounds(prepared, float(cfg["clustering"]["max_displacement"]))
-    init = initialise(window, prepared, cfg, k, bounds, seed=seed)
+    init = initialise(window, prepared, cfg, k, bounds, seed=seed, optimizer=optimizer)
     timings["init"] = time.perf_counter() - start
 
     start = time.perf_counter()

@@ -1,0 +1,155 @@
+"""Initial motions from local contrast maximisation: each image tile proposes the velocity
+that sharpens its own events best, and a greedy cover keeps the K proposals that explain
+most tiles (``init.method=tiles``).
+
+Decision: with a moving camera the flow-based initialisation fails where motions differ
+only in depth, e.g. a camera walking forward past a person crossing (``ego_forward``): in
+short windows forward and sideways translation look alike in any small neighbourhood, so
+per-event flows do not cluster, and the best single velocity of all events is a blend of
+the static scene and the person. A tile's own contrast maximum is sharp for the motion that
+dominates the tile, and its contrast under the other tiles' velocities says which of those
+explain it too. Measured in docs/method.md ("Initial velocities").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+import numpy as np
+
+from spatialseg.clustering import ClusterEvaluator, Maximizer
+
+__all__ = ["Tiles", "greedy_cover", "image_tiles", "tile_motions"]
+
+
+def image_tiles(xy: np.ndarray, size: float, min_events: int) -> tuple[np.ndarray, np.ndarray]:
+    """Square tiles of ``size`` pixels over the events' image positions ``xy`` (M x 2):
+    each event's tile index (-1 in tiles with fewer than ``min_events`` events) and the
+    event count of every kept tile."""
+    if size <= 0 or min_events < 1:
+        raise ValueError(
+            f"init.tiles.size must be > 0 and init.tiles.min_events >= 1, got {size}, {min_events}"
+        )
+    cells = np.floor(np.asarray(xy, dtype=np.float64) / size).astype(np.int64)
+    _, tile, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    tile = tile.reshape(-1)
+    dense = counts >= min_events
+    renumber = np.where(dense, np.cumsum(dense) - 1, -1)
+    return renumber[tile], counts[dense]
+
+
+class Tiles:
+    """The events of each tile, and their objective built on demand by
+    ``evaluator_for(indices)`` (one at a time: each holds a volume the size of the grid)."""
+
+    def __init__(
+        self,
+        evaluator_for: Callable[[np.ndarray], ClusterEvaluator],
+        event_tile: np.ndarray,
+        n_tiles: int,
+    ) -> None:
+        self.event_tile = event_tile
+        self._evaluator_for = evaluator_for
+        order = np.argsort(event_tile, kind="stable")
+        ids = event_tile[order]
+        starts = np.searchsorted(ids, np.arange(n_tiles))
+        ends = np.searchsorted(ids, np.arange(n_tiles), side="right")
+        self.members = [order[s:e] for s, e in zip(starts, ends, strict=True)]
+
+    def objective(self, events: np.ndarray) -> ClusterEvaluator:
+        """The objective over the given events."""
+        return self._evaluator_for(events)
+
+    def _evaluators(self) -> Iterator[ClusterEvaluator]:
+        """Each tile's objective, in tile order."""
+        return (self.objective(m) for m in self.members)
+
+    def events_of(self, tiles: np.ndarray) -> np.ndarray:
+        """The events of the given tiles, sorted."""
+        return np.sort(np.concatenate([self.members[t] for t in tiles] or [np.zeros(0, int)]))
+
+    def own_maxima(
+        self, optimizer: Maximizer, bounds: np.ndarray, *, evals: int, seed: int
+    ) -> np.ndarray:
+        """Each tile's contrast maximised from zero velocity within ``bounds`` (T x dim)."""
+        seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=len(self.members))
+        x0 = np.clip(np.zeros(bounds.shape[0]), bounds[:, 0], bounds[:, 1])
+        return np.array(
+            [
+                _maximize(ev, optimizer, bounds, x0, evals, int(s))
+                for ev, s in zip(self._evaluators(), seeds, strict=True)
+            ]
+        )
+
+    def contrasts(self, velocities: np.ndarray) -> np.ndarray:
+        """Every tile's contrast under every velocity (T x H)."""
+        return np.array([ev.batch_value(velocities) for ev in self._evaluators()])
+
+
+def _maximize(
+    evaluator: ClusterEvaluator,
+    optimizer: Maximizer,
+    bounds: np.ndarray,
+    x0: np.ndarray,
+    evals: int,
+    seed: int,
+) -> np.ndarray:
+    """The optimiser's best velocity for one objective."""
+    res = optimizer.maximize(
+        evaluator.value,
+        bounds,
+        x0=x0,
+        grad=evaluator.grad,
+        max_evals=evals,
+        seed=seed,
+        batch_fun=evaluator.batch_value,
+    )
+    return np.asarray(res.x, dtype=np.float64)
+
+
+def greedy_cover(scores: np.ndarray, weights: np.ndarray, k: int) -> list[int]:
+    """Pick ``k`` columns of ``scores`` (tiles x hypotheses, in [0, 1]) one at a time, each
+    maximising ``sum_t weights_t max(covered_t, scores_t,h)``: the hypotheses that together
+    explain the most (weighted) tiles."""
+    chosen: list[int] = []
+    covered = np.zeros(scores.shape[0])
+    for _ in range(min(k, scores.shape[1])):
+        gain = (np.maximum(scores, covered[:, None]) * weights[:, None]).sum(axis=0)
+        gain[chosen] = -np.inf
+        best = int(np.argmax(gain))
+        chosen.append(best)
+        covered = np.maximum(covered, scores[:, best])
+    return chosen
+
+
+def tile_motions(
+    tiles: Tiles,
+    counts: np.ndarray,
+    k: int,
+    optimizer: Maximizer,
+    bounds: np.ndarray,
+    refit: Maximizer,
+    *,
+    evals: int,
+    rounds: int,
+    seed: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """K velocities (K x dim) and each tile's motion (T,): the greedy cover of the tiles' own
+    maxima (``optimizer``), then ``rounds`` of re-fitting each velocity on its tiles' events
+    (``refit``, a local optimiser, from the velocity) and re-assigning each tile to the
+    velocity it scores best relative to its own maximum."""
+    own = tiles.own_maxima(optimizer, bounds, evals=evals, seed=seed)
+    raw = tiles.contrasts(own)
+    best = np.maximum(raw.max(axis=1), 1e-300)
+    chosen = greedy_cover(raw / best[:, None], counts.astype(np.float64), k)
+    velocities = own[chosen].copy()
+    label = np.argmax(raw[:, chosen], axis=1)
+    seeds = np.random.default_rng(seed + 1).integers(0, 2**31 - 1, size=(rounds, k))
+    for r in range(rounds):
+        for j in range(k):
+            members = tiles.events_of(np.flatnonzero(label == j))
+            if len(members):
+                ev = tiles.objective(members)
+                velocities[j] = _maximize(ev, refit, bounds, velocities[j], evals, int(seeds[r, j]))
+        label = np.argmax(tiles.contrasts(velocities) / best[:, None], axis=1)
+    return velocities, label

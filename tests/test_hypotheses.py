@@ -1,0 +1,101 @@
+"""The tile initialisation: tiling, the greedy cover, and two motions recovered from tiles."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+import optimizers
+from spatialseg.config import conf_dir
+from spatialseg.grid import grid_around
+from spatialseg.hypotheses import Tiles, greedy_cover, image_tiles, tile_motions
+from spatialseg.metrics import segmentation_metrics
+from spatialseg.pipeline import ModelEvaluator, named_optimizer, segment_window
+from spatialseg.scenes import load_scene
+from spatialseg.volume import VolumeObjective
+
+from .test_clustering import _two_motion_cloud
+
+
+def test_image_tiles_number_dense_tiles_and_drop_sparse_ones():
+    xy = np.array([[1.0, 1.0], [2.0, 3.0], [5.0, 1.0], [17.0, 1.0], [18.0, 2.0], [40.0, 40.0]])
+    tile, counts = image_tiles(xy, 16.0, 2)
+    assert tile.tolist() == [0, 0, 0, 1, 1, -1] and counts.tolist() == [3, 2]
+    with pytest.raises(ValueError, match=r"init\.tiles\.size must be > 0"):
+        image_tiles(xy, 0.0, 2)
+
+
+def test_greedy_cover_prefers_distinct_explanations():
+    """Tiles 0-2 are explained by hypothesis 0 or 1 (near duplicates), tiles 3-4 only by 2."""
+    scores = np.array(
+        [
+            [1.0, 0.98, 0.2],
+            [1.0, 0.99, 0.1],
+            [0.97, 1.0, 0.3],
+            [0.2, 0.2, 1.0],
+            [0.3, 0.1, 1.0],
+        ]
+    )
+    assert greedy_cover(scores, np.ones(5), 2) == [0, 2]
+    assert greedy_cover(scores, np.ones(5), 5) == [0, 2, 1]  # at most one pick per column
+
+
+def test_tiles_group_events_and_recover_two_motions():
+    rng = np.random.default_rng(0)
+    points, dt, labels, truth = _two_motion_cloud(rng)
+    grid = grid_around(points, np.array([0.005, 0.005, 0.02]), 0.1, 10**7)
+    event_tile, counts = image_tiles(points[:, :2], 0.05, 30)
+
+    def evaluator_for(index: np.ndarray) -> ModelEvaluator:
+        return ModelEvaluator(VolumeObjective(points[index], dt[index], grid, "variance"), 3)
+
+    tiles = Tiles(evaluator_for, event_tile, len(counts))
+    assert (
+        sorted(np.concatenate(tiles.members).tolist()) == np.flatnonzero(event_tile >= 0).tolist()
+    )
+    bounds = np.array([[-1.0, 1.0], [-1.0, 1.0], [-0.1, 0.1]])
+    velocities, tile_label = tile_motions(
+        tiles,
+        counts,
+        2,
+        optimizers.create("ssa_ga"),
+        bounds,
+        named_optimizer("nlopt_bobyqa"),
+        evals=60,
+        rounds=2,
+        seed=0,
+    )
+    order = np.argsort(velocities[:, 0])[::-1]  # truth: +0.3 then -0.2 in vx
+    np.testing.assert_allclose(velocities[order, :2], truth[:, :2], atol=0.03)
+    event_label = np.where(event_tile >= 0, tile_label[np.maximum(event_tile, 0)], -1)
+    kept = event_label >= 0
+    assert np.mean(order[event_label[kept]] == labels[kept]) > 0.95
+
+
+def _config(*overrides: str) -> dict:
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=["+scene=interior", *overrides])
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def test_tile_init_segments_the_interior_window():
+    cfg = _config("init.method=tiles")
+    _, window = next(load_scene(cfg["scene"], seed=0, window_events=4000).windows())
+    res = segment_window(window, cfg, optimizers.create("ssa_ga"), seed=0)
+    assert segmentation_metrics(res.labels, window.ground_truth.labels)["accuracy"] > 0.95
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("init.method=kmeans", "init.method must be one of"),
+        ("init.tiles.refit=no_such", "unknown optimizer 'no_such'"),
+    ],
+)
+def test_bad_init_settings_name_the_choices(override, message):
+    cfg = _config("init.method=tiles", override)
+    _, window = next(load_scene(cfg["scene"], seed=0, window_events=2000).windows())
+    with pytest.raises(ValueError, match=message):
+        segment_window(window, cfg, optimizers.create("ssa_ga"), seed=0)
