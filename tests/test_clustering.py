@@ -145,3 +145,9 @@ def test_fast_preset_composes_onto_the_defaults():
     assert {k: v for k, v in fast.items() if k != "clustering"} == {
         k: v for k, v in base.items() if k != "clustering"
     }
+
+
+def test_moving_camera_preset_selects_the_tile_start():
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=["+scene=ego_street", "+preset=moving_camera"])
+    assert cfg.init.method == "tiles" and cfg.clustering.p_step_sigma == 2.0
