@@ -93,7 +93,7 @@ def bench_size(n: int, dtype: str, grid: VoxelGrid, args: argparse.Namespace) ->
     sigmas = [args.p_step_sigma if n > 1 else 0.0 for n in grid.shape]
 
     def smoothed(volume: np.ndarray) -> np.ndarray:
-        return gaussian_filter(volume, sigmas, mode="constant")
+        return gaussian_filter(volume, sigmas, mode="reflect")
 
     rows = []
     for op in OPERATIONS:

@@ -1,4 +1,4 @@
-"""Smoke tests of the scaling and end-to-end benchmarks' helpers (no timing asserted)."""
+"""Smoke tests of the scaling, end-to-end and window benchmarks' helpers (no timing asserted)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 
 import bench_end_to_end
 import bench_scaling
+import bench_window
 
 
 def test_events_are_deterministic_and_fill_a_sensor_sized_grid() -> None:
@@ -51,3 +52,10 @@ def test_end_to_end_rejects_unknown_optimizers_and_scales_dense_windows() -> Non
     assert ok.optimizers == ["default", "default:+preset=fast"]
     assert bench_end_to_end.sensor_overrides(100000, 100000) == []
     assert "scene.sensor.threshold_mean=0.02" in bench_end_to_end.sensor_overrides(10**6, 10**5)
+
+
+def test_window_benchmark_times_a_config_and_reports_its_run() -> None:
+    row = bench_window.time_config("interior", 2000, "+preset=fast", 1)
+    assert row["config"] == "+preset=fast" and row["events"] == 2000
+    assert row["cold_s"] > 0 and row["warm_s"] > 0 and row["accuracy"] > 0.9
+    assert 1 <= row["iterations"] <= 20 and row["evaluations"] > 0
