@@ -233,6 +233,7 @@ def _tiles_init(
         named_optimizer(str(params["refit"])),
         evals=int(params["evals"]),
         rounds=int(params["rounds"]),
+        explained=None if params["explained"] is None else float(params["explained"]),
         seed=seed,
     )
     thetas = np.zeros((k, 3))
