@@ -30,6 +30,7 @@ __all__ = [
     "IterationRecord",
     "initial_memberships",
     "iterative_clustering",
+    "maximize_contrast",
     "update_memberships",
 ]
 
@@ -183,7 +184,7 @@ def _stop_reason(history: list[IterationRecord], rules: ConvergenceRules) -> str
     return ""
 
 
-def _theta_step(
+def maximize_contrast(
     evaluator: ClusterEvaluator,
     optimizer: Maximizer,
     theta: np.ndarray,
@@ -191,7 +192,9 @@ def _theta_step(
     budget: int,
     seed: int,
 ) -> tuple[np.ndarray, int]:
-    """Maximise one cluster's contrast from its current velocity; return (theta, evals)."""
+    """Maximise one objective's contrast from ``theta`` (clipped into ``bounds``) with the
+    analytic gradient and batched evaluation; return the best velocity and the evaluations
+    spent (the theta-step of one cluster)."""
     x0 = np.clip(theta, bounds[:, 0], bounds[:, 1])
     res = optimizer.maximize(
         evaluator.value,
@@ -259,7 +262,7 @@ def iterative_clustering(
         for j in range(k):
             step_evaluator, subset = step or (evaluator, slice(None))
             step_evaluator.set_weights(p[subset, j])
-            thetas[j], n = _theta_step(
+            thetas[j], n = maximize_contrast(
                 step_evaluator, optimizer, thetas[j], bounds, evals_per_step, int(seeds[it, j])
             )
             evals += n

@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from spatialseg.clustering import ClusterEvaluator, Maximizer
+from spatialseg.clustering import ClusterEvaluator, Maximizer, maximize_contrast
 
 __all__ = ["Tiles", "greedy_cover", "image_tiles", "tile_motions"]
 
@@ -76,7 +76,7 @@ class Tiles:
         x0 = np.clip(np.zeros(bounds.shape[0]), bounds[:, 0], bounds[:, 1])
         return np.array(
             [
-                _maximize(ev, optimizer, bounds, x0, evals, int(s))
+                maximize_contrast(ev, optimizer, x0, bounds, evals, int(s))[0]
                 for ev, s in zip(self._evaluators(), seeds, strict=True)
             ]
         )
@@ -84,27 +84,6 @@ class Tiles:
     def contrasts(self, velocities: np.ndarray) -> np.ndarray:
         """Every tile's contrast under every velocity (T x H)."""
         return np.array([ev.batch_value(velocities) for ev in self._evaluators()])
-
-
-def _maximize(
-    evaluator: ClusterEvaluator,
-    optimizer: Maximizer,
-    bounds: np.ndarray,
-    x0: np.ndarray,
-    evals: int,
-    seed: int,
-) -> np.ndarray:
-    """The optimiser's best velocity for one objective."""
-    res = optimizer.maximize(
-        evaluator.value,
-        bounds,
-        x0=x0,
-        grad=evaluator.grad,
-        max_evals=evals,
-        seed=seed,
-        batch_fun=evaluator.batch_value,
-    )
-    return np.asarray(res.x, dtype=np.float64)
 
 
 def greedy_cover(
@@ -166,6 +145,8 @@ def tile_motions(
             members = tiles.events_of(np.flatnonzero(label == j))
             if len(members):
                 ev = tiles.objective(members)
-                velocities[j] = _maximize(ev, refit, bounds, velocities[j], evals, int(seeds[r, j]))
+                velocities[j] = maximize_contrast(
+                    ev, refit, velocities[j], bounds, evals, int(seeds[r, j])
+                )[0]
         label = np.argmax(tiles.contrasts(velocities) / best[:, None], axis=1)
     return velocities, label
