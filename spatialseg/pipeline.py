@@ -184,8 +184,9 @@ def _image_flow_init(
     )
 
 
-def named_optimizer(name: str) -> Any:
-    """The optimiser of ``conf/optimizer/<name>.yaml`` with its defaults."""
+def named_optimizer(name: str, key: str) -> Any:
+    """The optimiser of ``conf/optimizer/<name>.yaml`` with its defaults (``key``: the
+    config key that named it, for the error message)."""
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
 
@@ -193,7 +194,8 @@ def named_optimizer(name: str) -> Any:
 
     if name not in group_options("optimizer"):
         raise ValueError(
-            f"unknown optimizer {name!r}; choose from {', '.join(group_options('optimizer'))}"
+            f"{key}: unknown optimizer {name!r}; choose from "
+            f"{', '.join(group_options('optimizer'))}"
         )
     return instantiate(OmegaConf.load(conf_dir() / "optimizer" / f"{name}.yaml"))
 
@@ -230,7 +232,7 @@ def _tiles_init(
         k,
         optimizer,
         bounds,
-        named_optimizer(str(params["refit"])),
+        named_optimizer(str(params["refit"]), "init.tiles.refit"),
         evals=int(params["evals"]),
         rounds=int(params["rounds"]),
         explained=None if params["explained"] is None else float(params["explained"]),

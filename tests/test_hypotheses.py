@@ -76,7 +76,7 @@ def test_tiles_group_events_and_recover_two_motions():
         2,
         optimizers.create("ssa_ga"),
         bounds,
-        named_optimizer("nlopt_bobyqa"),
+        named_optimizer("nlopt_bobyqa", "refit"),
         evals=60,
         rounds=2,
         explained=0.85,
@@ -106,7 +106,7 @@ def test_tile_init_segments_the_interior_window():
     ("override", "message"),
     [
         ("init.method=kmeans", "init.method must be one of"),
-        ("init.tiles.refit=no_such", "unknown optimizer 'no_such'"),
+        ("init.tiles.refit=no_such", "init.tiles.refit: unknown optimizer 'no_such'"),
     ],
 )
 def test_bad_init_settings_name_the_choices(override, message):
