@@ -120,12 +120,18 @@ def event_depth(
     outside [T1, T2] are clamped to the nearer map; ``T2 == T1`` uses Z1 (Z2 where Z1 is
     unknown). Occlusion edges (``edge_ratio``, see :func:`_interpolate`) take the nearer depth.
     """
+    z1, z2 = _pixel_depths(events, first, second)
+    return _interpolate(z1, z2, _time_fraction(events.t, first.t, second.t), edge_ratio)
+
+
+def _pixel_depths(
+    events: EventStream, first: DepthMap, second: DepthMap
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each event's depth in the first and in the second map (maps checked against the
+    events' sensor)."""
     _check_map(first, events)
     _check_map(second, events)
-    s = _time_fraction(events.t, first.t, second.t)
-    z1 = first.depth[events.y, events.x]
-    z2 = second.depth[events.y, events.x]
-    return _interpolate(z1, z2, s, edge_ratio)
+    return first.depth[events.y, events.x], second.depth[events.y, events.x]
 
 
 def fill_depth(depth: np.ndarray, x: np.ndarray, y: np.ndarray, *, radius: int) -> np.ndarray:
@@ -202,8 +208,9 @@ def lift(
     if not len(ev):
         raise ValueError(f"{window.name}: the window has no events; check the window bounds")
     first, second = _window_maps(window)
-    depth = event_depth(ev, first, second, edge_ratio=edge_ratio)
-    on_edge = occlusion_edges(first.depth[ev.y, ev.x], second.depth[ev.y, ev.x], edge_ratio)
+    z1, z2 = _pixel_depths(ev, first, second)
+    depth = _interpolate(z1, z2, _time_fraction(ev.t, first.t, second.t), edge_ratio)
+    on_edge = occlusion_edges(z1, z2, edge_ratio)
     missing = ~np.isfinite(depth)
     if unknown_depth == "fill" and missing.any():
         x, y = ev.x[missing], ev.y[missing]
