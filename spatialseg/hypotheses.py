@@ -39,8 +39,8 @@ def image_tiles(xy: np.ndarray, size: float, min_events: int) -> tuple[np.ndarra
 
 
 class Tiles:
-    """The events of each tile, and their objective built on demand by
-    ``evaluator_for(indices)`` (one at a time: each holds a volume the size of the grid)."""
+    """The events of each tile (``members``, ``counts``), and their objective built on demand
+    by ``evaluator_for(indices)`` (one at a time: each holds a volume the size of the grid)."""
 
     def __init__(
         self,
@@ -48,13 +48,13 @@ class Tiles:
         event_tile: np.ndarray,
         n_tiles: int,
     ) -> None:
-        self.event_tile = event_tile
         self._evaluator_for = evaluator_for
         order = np.argsort(event_tile, kind="stable")
         ids = event_tile[order]
         starts = np.searchsorted(ids, np.arange(n_tiles))
         ends = np.searchsorted(ids, np.arange(n_tiles), side="right")
         self.members = [order[s:e] for s, e in zip(starts, ends, strict=True)]
+        self.counts = ends - starts
 
     def objective(self, events: np.ndarray) -> ClusterEvaluator:
         """The objective over the given events."""
@@ -73,7 +73,7 @@ class Tiles:
     ) -> np.ndarray:
         """Each tile's contrast maximised from zero velocity within ``bounds`` (T x dim)."""
         seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=len(self.members))
-        x0 = np.clip(np.zeros(bounds.shape[0]), bounds[:, 0], bounds[:, 1])
+        x0 = np.zeros(bounds.shape[0])  # clipped into the box by maximize_contrast
         return np.array(
             [
                 maximize_contrast(ev, optimizer, x0, bounds, evals, int(s))[0]
@@ -117,7 +117,6 @@ def greedy_cover(
 
 def tile_motions(
     tiles: Tiles,
-    counts: np.ndarray,
     k: int,
     optimizer: Maximizer,
     bounds: np.ndarray,
@@ -131,12 +130,12 @@ def tile_motions(
     """K velocities (K x dim) and each tile's motion (T,): the greedy cover of the tiles' own
     maxima (``optimizer``), then ``rounds`` of re-fitting each velocity on its tiles' events
     (``refit``, a local optimiser, from the velocity) and re-assigning each tile to the
-    velocity it scores best relative to its own maximum. ``explained``: see
-    :func:`greedy_cover`."""
+    velocity it scores best (relative to the tile's own maximum for the cover; the best
+    velocity of a tile is the same either way). ``explained``: see :func:`greedy_cover`."""
     own = tiles.own_maxima(optimizer, bounds, evals=evals, seed=seed)
     raw = tiles.contrasts(own)
     best = np.maximum(raw.max(axis=1), 1e-300)
-    chosen = greedy_cover(raw / best[:, None], counts.astype(np.float64), k, explained)
+    chosen = greedy_cover(raw / best[:, None], tiles.counts.astype(np.float64), k, explained)
     velocities = own[chosen].copy()
     label = np.argmax(raw[:, chosen], axis=1)
     seeds = np.random.default_rng(seed + 1).integers(0, 2**31 - 1, size=(rounds, k))
@@ -148,5 +147,5 @@ def tile_motions(
                 velocities[j] = maximize_contrast(
                     ev, refit, velocities[j], bounds, evals, int(seeds[r, j])
                 )[0]
-        label = np.argmax(tiles.contrasts(velocities) / best[:, None], axis=1)
+        label = np.argmax(tiles.contrasts(velocities), axis=1)
     return velocities, label

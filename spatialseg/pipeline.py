@@ -228,7 +228,6 @@ def _tiles_init(
     tiles = hypotheses.Tiles(evaluator_for, event_tile, len(counts))
     velocities, tile_label = hypotheses.tile_motions(
         tiles,
-        counts,
         k,
         optimizer,
         bounds,
@@ -255,9 +254,9 @@ def initialise(
     seed: int,
     optimizer: Any = None,
 ) -> motion_init.InitResult:
-    """Initial motions by ``init.method``: ``tiles`` (default; needs the run's
-    ``optimizer``), ``image_flow`` or ``time_surface`` (the paper's three planes; the
-    flow-based choice for the planar model's own 2-D space).
+    """Initial motions by ``init.method``: ``image_flow`` (default), ``tiles`` (needs the
+    run's ``optimizer``) or ``time_surface`` (the paper's three planes; the flow-based
+    choice for the planar model's own 2-D space).
 
     ``bounds`` is the model's search box (:func:`search_bounds`); flows faster than it are
     discarded. ``tiles`` falls back to ``image_flow`` when fewer than K tiles have enough

@@ -70,9 +70,9 @@ def test_tiles_group_events_and_recover_two_motions():
         sorted(np.concatenate(tiles.members).tolist()) == np.flatnonzero(event_tile >= 0).tolist()
     )
     bounds = np.array([[-1.0, 1.0], [-1.0, 1.0], [-0.1, 0.1]])
+    assert tiles.counts.tolist() == counts.tolist()
     velocities, tile_label = tile_motions(
         tiles,
-        counts,
         2,
         optimizers.create("ssa_ga"),
         bounds,
