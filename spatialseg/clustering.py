@@ -255,6 +255,7 @@ def iterative_clustering(
         raise ValueError(f"initial memberships have shape {p.shape}, expected {(n_events, k)}")
     values = np.zeros(k)
     history: list[IterationRecord] = []
+    labels = p.argmax(axis=1)
     reason = ""
     for it in range(rules.max_iterations):
         start = time.perf_counter()
@@ -266,10 +267,10 @@ def iterative_clustering(
                 step_evaluator, optimizer, thetas[j], bounds, evals_per_step, int(seeds[it, j])
             )
             evals += n
-        previous = p.argmax(axis=1)
         responses, values = _responses(evaluator, thetas, p, p_step_sigma)
         p = update_memberships(responses)
-        changed = float(np.mean(p.argmax(axis=1) != previous)) if n_events else 0.0
+        previous, labels = labels, p.argmax(axis=1)
+        changed = float(np.mean(labels != previous)) if n_events else 0.0
         elapsed = time.perf_counter() - start
         record = IterationRecord(it + 1, values.copy(), thetas.copy(), evals, elapsed, changed)
         history.append(record)
