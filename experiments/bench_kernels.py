@@ -5,7 +5,8 @@
 
 For each size and storage dtype it times ``value`` (objective), ``value_and_grad``
 (objective + gradient) and ``p_step`` (P-step: vote V, smooth it by
-``--p-step-sigma`` voxels, interpolate it at every event) of
+``--p-step-sigma`` voxels, interpolate it at every event; ``--p-step-stride`` 2 does so on a
+grid twice as coarse in x and y, so its error column is that approximation's) of
 :class:`spatialseg.volume.VolumeObjective`, and the same three quantities from
 :mod:`spatialseg.reference` (smoothing by ``scipy.ndimage.gaussian_filter``) in the same run
 (up to ``--reference-max`` events), on random events filling a ``--grid`` volume and warped
@@ -44,6 +45,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--shift", type=float, default=3.0, help="largest warp, in voxels")
     parser.add_argument("--reference-max", type=float, default=1e6, help="largest reference N")
     parser.add_argument("--p-step-sigma", type=float, default=3.0, help="P-step smoothing, voxels")
+    parser.add_argument("--p-step-stride", type=int, default=1, help="P-step grid coarsening")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, default=Path("outputs/bench_kernels.json"))
     return parser.parse_args()
@@ -81,7 +83,7 @@ def bench_size(n: int, dtype: str, grid: VoxelGrid, args: argparse.Namespace) ->
     kernels = {
         "objective": lambda: ev.value(theta),
         "objective+gradient": lambda: ev.value_and_grad(theta),
-        "P-step": lambda: ev.p_step(theta, args.p_step_sigma)[0],
+        "P-step": lambda: ev.p_step(theta, args.p_step_sigma, args.p_step_stride)[0],
     }
     # the reference on the same (rounded) inputs
     p, t, w = (a.astype(dtype).astype(np.float64) for a in (points, dt, weights))

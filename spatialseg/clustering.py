@@ -47,7 +47,9 @@ class ClusterEvaluator(Protocol):
     def value(self, theta: np.ndarray) -> float: ...
     def grad(self, theta: np.ndarray) -> np.ndarray: ...
     def batch_value(self, thetas: np.ndarray) -> np.ndarray: ...
-    def p_step(self, theta: np.ndarray, sigma: float) -> tuple[np.ndarray, float]: ...
+    def p_step(
+        self, theta: np.ndarray, sigma: float, stride: int = 1
+    ) -> tuple[np.ndarray, float]: ...
 
 
 class Maximizer(Protocol):
@@ -209,7 +211,7 @@ def maximize_contrast(
 
 
 def _responses(
-    evaluator: ClusterEvaluator, thetas: np.ndarray, p: np.ndarray, sigma: float
+    evaluator: ClusterEvaluator, thetas: np.ndarray, p: np.ndarray, sigma: float, stride: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """``c_j(x'_kj)``: each cluster's (smoothed) volume sampled at its warped events (N x K),
     and each cluster's contrast over all events (K,), from the same votes."""
@@ -217,7 +219,7 @@ def _responses(
     values = np.empty(len(thetas))
     for j, theta in enumerate(thetas):
         evaluator.set_weights(p[:, j])
-        responses[:, j], values[j] = evaluator.p_step(theta, sigma)
+        responses[:, j], values[j] = evaluator.p_step(theta, sigma, stride)
     return responses, values
 
 
@@ -232,6 +234,7 @@ def iterative_clustering(
     evals_per_step: int,
     p_step_sigma: float,
     seed: int,
+    p_step_stride: int = 1,
     on_iteration: Callable[[IterationRecord], None] | None = None,
     step: tuple[ClusterEvaluator, np.ndarray] | None = None,
 ) -> ClusteringResult:
@@ -240,7 +243,8 @@ def iterative_clustering(
     ``bounds`` (dim x 2) is the search box for every velocity. The optimiser seed of each
     theta-step derives from ``seed`` so the whole loop is deterministic. ``p_step_sigma``
     (voxels, 0 = off) smooths each volume before the P-step samples it, so an event's
-    response reflects its neighbourhood rather than the texture of a single voxel.
+    response reflects its neighbourhood rather than the texture of a single voxel;
+    ``p_step_stride`` does so on a grid that many times coarser in x and y (same total blur).
     ``step`` (an evaluator over a subset of the events, and their indices) makes the
     theta-step optimise on that subset; the P-step and the recorded contrasts use all events.
     """
@@ -267,7 +271,7 @@ def iterative_clustering(
                 step_evaluator, optimizer, thetas[j], bounds, evals_per_step, int(seeds[it, j])
             )
             evals += n
-        responses, values = _responses(evaluator, thetas, p, p_step_sigma)
+        responses, values = _responses(evaluator, thetas, p, p_step_sigma, p_step_stride)
         p = update_memberships(responses)
         previous, labels = labels, p.argmax(axis=1)
         changed = float(np.mean(labels != previous)) if n_events else 0.0

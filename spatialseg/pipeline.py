@@ -132,10 +132,12 @@ class ModelEvaluator:
         """The volume of warped events for ``theta``."""
         return self.inner.volume(self._full(theta))
 
-    def p_step(self, theta: np.ndarray, sigma: float) -> tuple[np.ndarray, float]:
+    def p_step(
+        self, theta: np.ndarray, sigma: float, stride: int = 1
+    ) -> tuple[np.ndarray, float]:
         """The volume for ``theta``, smoothed by ``sigma`` voxels, at each warped event, and
         the contrast of the volume (the P-step)."""
-        return self.inner.p_step(self._full(theta), sigma)
+        return self.inner.p_step(self._full(theta), sigma, stride)
 
 
 def _planar_points(window: Recording, xy_scale: float) -> Prepared:
@@ -500,6 +502,7 @@ def segment_window(
         rules=rules,
         evals_per_step=int(ccfg["evals_per_step"]),
         p_step_sigma=float(ccfg["p_step_sigma"]),
+        p_step_stride=int(ccfg["p_step_stride"]),
         seed=seed,
         on_iteration=on_iteration,
         step=step,

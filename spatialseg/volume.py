@@ -385,7 +385,7 @@ class VolumeObjective:
         self._padded, self._cells, self._fracs = self._workspace()
         self._fused = isinstance(objective, MomentObjective) and not objective.smooths
         self._scratch: tuple[np.ndarray, np.ndarray] | None = None
-        self._pstep: tuple[np.ndarray, np.ndarray] | None = None
+        self._pstep: tuple | None = None
         self._batch: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         if weights is not None:
             self.set_weights(weights)
@@ -518,30 +518,63 @@ class VolumeObjective:
         with self._voted(theta):
             return self._interior(self._padded).copy()
 
-    def p_step(self, theta: np.ndarray, sigma: float) -> tuple[np.ndarray, float]:
+    def _p_step_buffers(self, stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The P-step's grid, ``stride`` times coarser in x and y (voxel 0 on the fine voxel
+        0): per-axis strides, its padded vote buffer (zero between calls), and its raw and
+        smoothed volumes; made once per stride."""
+        if self._pstep is None or self._pstep[0] != stride:
+            fine = np.array(self.grid.shape)
+            strides = np.where((fine > 1) & (np.arange(3) < 2), stride, 1)
+            shape = tuple(np.where(strides > 1, (fine - 1) // strides + 2, fine))
+            padded = np.zeros(tuple(n + 2 for n in shape), self.dtype)
+            volumes = (np.empty(shape, self.dtype), np.empty(shape, self.dtype))
+            self._pstep = (stride, strides, padded, *volumes)
+        return self._pstep[1:]
+
+    def p_step(self, theta: np.ndarray, sigma: float, stride: int = 1) -> tuple[np.ndarray, float]:
         """``V(theta)`` smoothed by a Gaussian of ``sigma`` voxels (axes with one voxel left
         alone; mirrored at the grid's border) and interpolated at each warped event (N,): the
-        P-step's ``c_j(x'_kj)``; and the objective of ``V(theta)``, from the same vote. In
-        buffers reused from call to call.
+        P-step's ``c_j(x'_kj)``; and the objective of ``V(theta)``. In buffers reused from
+        call to call.
+
+        ``stride`` > 1 votes, smooths and samples on a grid that many times coarser in x and
+        y, per fine voxel's area; the Gaussian there is narrowed so that it and the coarser
+        voting and sampling tents keep the fine total variance (``sigma^2 - (stride^2-1)/3``
+        fine voxels squared). Depth keeps its bins: on its dozen or so, a coarser axis moves
+        the mirrored border by a sizeable share of the blur.
 
         Decision: mirrored rather than zero beyond the border, so a cluster whose events
         crowd the border is not diluted there against one in the middle (zero boundaries
         cost 6 % accuracy on a 4,000-event interior window).
         """
-        if self._pstep is None:
-            self._pstep = tuple(np.empty(self.grid.shape, self.dtype) for _ in range(2))
-        raw, smooth = self._pstep
-        padded = self._scratch_volumes()[0]  # its halo is always zero
-        sigmas = [sigma if n > 1 else 0.0 for n in self.grid.shape]
-        sampled = np.empty(self.n_events)
+        if not (isinstance(stride, int | np.integer) and stride >= 1):
+            raise ValueError(f"p_step stride must be an integer >= 1, got {stride!r}")
+        if sigma**2 < (stride**2 - 1) / 3:
+            raise ValueError(
+                f"a P-step stride of {stride} needs a smoothing sigma of at least "
+                f"{np.sqrt((stride**2 - 1) / 3):.2f} voxels, got {sigma}; lower "
+                "clustering.p_step_stride or raise clustering.p_step_sigma"
+            )
+        strides, padded, raw, smooth = self._p_step_buffers(stride)
+        fine_sigma = np.sqrt(sigma**2 - (strides**2 - 1) / 3)
+        sigmas = np.where(np.array(self.grid.shape) > 1, fine_sigma / strides, 0.0)
         with self._voted(theta) as (args, mass):
             value = self._voted_value(args, mass)
-            raw[...] = self._interior(self._padded)
+        events, coarse = args[:4], (self._origin, self._inv_size / strides, self._proj)
+        sampled = np.empty(self.n_events)
+        _scatter(*events, *coarse, padded, self._cells, self._fracs)
+        try:
+            raw[...] = self._interior(padded)
             gaussian_smooth(raw, sigmas, out=smooth, work=raw, mode="reflect")
-            self._interior(padded)[...] = smooth
-            _sample(*args[:2], *args[3:], padded, self._cells, self._fracs, sampled)
+        finally:
+            _clear(*events, *coarse, padded, self._cells)
+        self._interior(padded)[...] = smooth
+        try:
+            _sample(*events[:2], *events[3:], *coarse, padded, self._cells, self._fracs, sampled)
+        finally:
+            self._interior(padded)[...] = 0
         out = np.empty_like(sampled)
-        out[self._order] = sampled
+        out[self._order] = sampled / np.prod(strides)
         return out, value
 
     def sample(self, theta: np.ndarray, volume: np.ndarray | None = None) -> np.ndarray:
