@@ -132,9 +132,7 @@ class ModelEvaluator:
         """The volume of warped events for ``theta``."""
         return self.inner.volume(self._full(theta))
 
-    def p_step(
-        self, theta: np.ndarray, sigma: float, stride: int = 1
-    ) -> tuple[np.ndarray, float]:
+    def p_step(self, theta: np.ndarray, sigma: float, stride: int = 1) -> tuple[np.ndarray, float]:
         """The volume for ``theta``, smoothed by ``sigma`` voxels, at each warped event, and
         the contrast of the volume (the P-step)."""
         return self.inner.p_step(self._full(theta), sigma, stride)
