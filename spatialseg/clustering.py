@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -28,6 +28,7 @@ __all__ = [
     "ClusteringResult",
     "ConvergenceRules",
     "IterationRecord",
+    "StepStage",
     "initial_memberships",
     "iterative_clustering",
     "maximize_contrast",
@@ -210,6 +211,18 @@ def maximize_contrast(
     return np.asarray(res.x, dtype=np.float64), int(res.n_evals)
 
 
+@dataclass(frozen=True)
+class StepStage:
+    """One stage of each cluster's theta-step: ``optimizer`` with ``budget`` evaluations on
+    ``evaluator``, whose events are ``subset`` of the P-step's (every one: ``slice(None)``).
+    Stages run in order, each from the velocity the one before found (coarse to fine)."""
+
+    evaluator: ClusterEvaluator
+    optimizer: Maximizer
+    budget: int
+    subset: np.ndarray | slice = field(default_factory=lambda: slice(None))
+
+
 def _responses(
     evaluator: ClusterEvaluator, thetas: np.ndarray, p: np.ndarray, sigma: float, stride: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -236,7 +249,7 @@ def iterative_clustering(
     seed: int,
     p_step_stride: int = 1,
     on_iteration: Callable[[IterationRecord], None] | None = None,
-    step: tuple[ClusterEvaluator, np.ndarray] | None = None,
+    stages: Sequence[StepStage] = (),
 ) -> ClusteringResult:
     """Run Algorithm 1 from velocities ``init_thetas`` (K x dim) and memberships ``init_p``.
 
@@ -245,9 +258,11 @@ def iterative_clustering(
     (voxels, 0 = off) smooths each volume before the P-step samples it, so an event's
     response reflects its neighbourhood rather than the texture of a single voxel;
     ``p_step_stride`` does so on a grid that many times coarser in x and y (same total blur).
-    ``step`` (an evaluator over a subset of the events, and their indices) makes the
-    theta-step optimise on that subset; the P-step and the recorded contrasts use all events.
+    ``stages`` replace the theta-step's one stage (``optimizer`` with ``evals_per_step`` on
+    ``evaluator``), e.g. to optimise on a subset of the events or on a coarser grid first;
+    the P-step and the recorded contrasts always use ``evaluator``, every event.
     """
+    stages = stages or (StepStage(evaluator, optimizer, evals_per_step),)
     thetas = np.array(init_thetas, dtype=np.float64, copy=True)
     k = thetas.shape[0]
     if k < 1:
@@ -265,12 +280,13 @@ def iterative_clustering(
         start = time.perf_counter()
         evals = 0
         for j in range(k):
-            step_evaluator, subset = step or (evaluator, slice(None))
-            step_evaluator.set_weights(p[subset, j])
-            thetas[j], n = maximize_contrast(
-                step_evaluator, optimizer, thetas[j], bounds, evals_per_step, int(seeds[it, j])
-            )
-            evals += n
+            for stage in stages:
+                stage.evaluator.set_weights(p[stage.subset, j])
+                seed_j = int(seeds[it, j])
+                thetas[j], n = maximize_contrast(
+                    stage.evaluator, stage.optimizer, thetas[j], bounds, stage.budget, seed_j
+                )
+                evals += n
         responses, values = _responses(evaluator, thetas, p, p_step_sigma, p_step_stride)
         p = update_memberships(responses)
         previous, labels = labels, p.argmax(axis=1)

@@ -95,6 +95,16 @@ class VoxelGrid:
         """``dq/dp`` (N x 3 x 3) at ``points``, see :func:`project_jacobian`."""
         return project_jacobian(points, self.projection)
 
+    def coarsened(self, stride: int) -> VoxelGrid:
+        """This grid with voxels ``stride`` times larger in x and y (axes of one voxel and
+        depth keep theirs), voxel 0 on this grid's voxel 0, covering the same extent."""
+        if not (isinstance(stride, int | np.integer) and stride >= 1):
+            raise ValueError(f"a grid stride must be an integer >= 1, got {stride!r}")
+        fine = np.array(self.shape)
+        strides = np.where((fine > 1) & (np.arange(3) < 2), stride, 1)
+        shape = np.where(strides > 1, (fine - 1) // strides + 2, fine)
+        return VoxelGrid(self.origin, self.voxel_size * strides, tuple(shape), self.projection)
+
     def continuous_index(self, points: np.ndarray) -> np.ndarray:
         """Continuous voxel coordinates of ``points`` (N x 3)."""
         return (self.coordinates(points) - self.origin) / self.voxel_size

@@ -20,6 +20,7 @@ from spatialseg.clustering import (
     ClusteringResult,
     ConvergenceRules,
     IterationRecord,
+    StepStage,
     initial_memberships,
     iterative_clustering,
 )
@@ -429,15 +430,52 @@ def _step_subset(
     return _evaluator(prepared, t_ref, cfg, pool), pool
 
 
+def _step_stages(
+    prepared: Prepared,
+    t_ref: float,
+    cfg: Mapping[str, Any],
+    optimizer: Any,
+    *,
+    seed: int,
+) -> tuple[StepStage, ...]:
+    """The theta-step's stages: the optimiser on the theta-step's events (:func:`_step_subset`;
+    none: the loop's default stage); with ``clustering.coarse`` set, first on a grid
+    ``stride`` times coarser and at most ``events`` of them, then ``refine`` on them at full
+    resolution (a coarse-to-fine search: the global phase on the cheaper problem)."""
+    ccfg = cfg["clustering"]
+    budget, coarse = int(ccfg["evals_per_step"]), ccfg["coarse"]
+    step = _step_subset(prepared, t_ref, cfg, seed=seed)
+    if int(coarse["stride"]) == 1 and coarse["events"] is None:
+        return () if step is None else (StepStage(step[0], optimizer, budget, step[1]),)
+    if coarse["events"] is not None and int(coarse["events"]) < 1:
+        raise ValueError(f"clustering.coarse.events must be >= 1 or null, got {coarse['events']}")
+    evaluator, pool = step or (_evaluator(prepared, t_ref, cfg), np.arange(len(prepared.t)))
+    sample = pool
+    if coarse["events"] is not None and len(pool) > int(coarse["events"]):
+        draw = np.random.default_rng(seed + 1).choice(len(pool), int(coarse["events"]), False)
+        sample = pool[np.sort(draw)]
+    grid = prepared.grid.coarsened(int(coarse["stride"]))
+    refine = named_optimizer(str(coarse["refine"]), "clustering.coarse.refine")
+    return (
+        StepStage(_evaluator(prepared, t_ref, cfg, sample, grid), optimizer, budget, sample),
+        StepStage(evaluator, refine, int(coarse["refine_evals"]), pool),
+    )
+
+
 def _evaluator(
-    prepared: Prepared, t_ref: float, cfg: Mapping[str, Any], index: Any = slice(None)
+    prepared: Prepared,
+    t_ref: float,
+    cfg: Mapping[str, Any],
+    index: Any = slice(None),
+    grid: VoxelGrid | None = None,
 ) -> ModelEvaluator:
-    """The configured objective over the window's events ``index`` (default all), stored in
-    ``volume.dtype`` (float32 halves the memory per event, float64 is the more accurate)."""
+    """The configured objective over the window's events ``index`` (default all) on ``grid``
+    (default the window's), stored in ``volume.dtype`` (float32 halves the memory per event,
+    float64 is the more accurate)."""
     volume = VolumeObjective(
         prepared.points[index],
         prepared.t[index] - t_ref,
-        prepared.grid,
+        prepared.grid if grid is None else grid,
         make_objective(**cfg["objective"]),
         dtype=str(cfg["volume"]["dtype"]),
     )
@@ -475,7 +513,7 @@ def segment_window(
     start = time.perf_counter()
     evaluator = _evaluator(prepared, t_ref, cfg)
     ccfg = cfg["clustering"]
-    step = _step_subset(prepared, t_ref, cfg, seed=seed)
+    stages = _step_stages(prepared, t_ref, cfg, optimizer, seed=seed)
     rules = ConvergenceRules(
         max_iterations=int(ccfg["max_iterations"]),
         tol=float(ccfg["tol"]),
@@ -503,7 +541,7 @@ def segment_window(
         p_step_stride=int(ccfg["p_step_stride"]),
         seed=seed,
         on_iteration=on_iteration,
-        step=step,
+        stages=stages,
     )
     timings["cluster"] = time.perf_counter() - start
     labels = assign_labels(result.probabilities, prepared.valid, float(ccfg["min_probability"]))

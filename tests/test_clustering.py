@@ -150,3 +150,34 @@ def test_moving_camera_preset_selects_the_tile_start():
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
         cfg = compose("config", overrides=["+scene=ego_street", "+preset=moving_camera"])
     assert cfg.init.method == "tiles" and cfg.clustering.p_step_sigma == 2.0
+
+
+def test_coarse_to_fine_theta_step():
+    """clustering.coarse: the optimiser on a coarser grid and fewer events, then the
+    refinement at full resolution; both budgets are spent every iteration, and the window
+    is still segmented."""
+    from spatialseg.pipeline import _step_stages, prepare, reference_time
+
+    overrides = ["+scene=interior", "clustering.coarse.stride=2", "clustering.coarse.events=1000"]
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = OmegaConf.to_container(compose("config", overrides=overrides), resolve=True)
+    rec = load_scene(cfg["scene"], seed=0, window_events=4000)
+    _, window = next(rec.windows())
+    prepared = prepare(window, cfg)
+    t_ref = reference_time(prepared.t, "middle")
+    ssa_ga = optimizers.create("ssa_ga")
+    coarse, fine = _step_stages(prepared, t_ref, cfg, ssa_ga, seed=0)
+    assert coarse.optimizer is ssa_ga and coarse.evaluator.n_events == 1000
+    assert np.allclose(coarse.evaluator.inner.grid.voxel_size[:2], 2 * prepared.grid.voxel_size[:2])
+    assert fine.evaluator.inner.grid is prepared.grid and fine.budget == 10
+    assert set(coarse.subset) <= set(fine.subset)
+    res = segment_window(window, cfg, ssa_ga, seed=0)
+    assert all(r.n_evals == 2 * (30 + 10) for r in res.clustering.history)
+    assert segmentation_metrics(res.labels, window.ground_truth.labels)["accuracy"] > 0.95
+    bad = {**cfg, "clustering": {**cfg["clustering"], "coarse": {**cfg["clustering"]["coarse"]}}}
+    bad["clustering"]["coarse"]["refine"] = "newton"
+    with pytest.raises(ValueError, match=r"clustering\.coarse\.refine: unknown optimizer 'newton'"):
+        _step_stages(prepared, t_ref, bad, ssa_ga, seed=0)
+    bad["clustering"]["coarse"]["events"] = 0
+    with pytest.raises(ValueError, match=r"clustering\.coarse\.events must be >= 1 or null"):
+        _step_stages(prepared, t_ref, bad, ssa_ga, seed=0)

@@ -27,3 +27,21 @@ def test_grid_around_rejects_too_many_voxels_and_nan():
 def test_voxel_grid_validates():
     with pytest.raises(ValueError, match="size > 0"):
         VoxelGrid(np.zeros(3), np.array([1.0, 0.0, 1.0]), (2, 2, 2))
+
+
+@pytest.mark.parametrize("shape", [(14, 11, 6), (15, 1, 1)])
+def test_coarsened_grid_covers_the_fine_one_in_x_and_y(shape):
+    """Voxel 0 stays put, x and y voxels grow by the stride (a one-voxel axis and depth keep
+    theirs), and the last fine voxel's centre is inside the coarse grid."""
+    proj = np.array([300.0, 300.0, 172.5, 129.5])
+    grid = VoxelGrid(np.array([1.0, 2.0, 0.4]), np.array([2.0, 3.0, 0.05]), shape, proj)
+    coarse = grid.coarsened(3)
+    strides = np.array([3, 3 if shape[1] > 1 else 1, 1])
+    assert np.allclose(coarse.voxel_size, grid.voxel_size * strides)
+    assert np.allclose(coarse.origin, grid.origin)
+    assert np.array_equal(coarse.projection, grid.projection)
+    last = grid.origin + (np.array(shape) - 1) * grid.voxel_size
+    assert np.all((last - coarse.origin) / coarse.voxel_size <= np.array(coarse.shape) - 1)
+    assert grid.coarsened(1).shape == grid.shape
+    with pytest.raises(ValueError, match="grid stride must be an integer >= 1"):
+        grid.coarsened(0)

@@ -339,5 +339,5 @@ def test_p_step_stride_needs_enough_smoothing():
     ev = VolumeObjective(*_events(50)[:2], GRID, "variance")
     with pytest.raises(ValueError, match=r"stride of 3 needs a smoothing sigma of at least 1\.63"):
         ev.p_step(THETA, 1.0, 3)
-    with pytest.raises(ValueError, match="stride must be an integer >= 1"):
+    with pytest.raises(ValueError, match="grid stride must be an integer >= 1"):
         ev.p_step(THETA, 1.0, 0)
