@@ -146,10 +146,10 @@ def test_fast_preset_composes_onto_the_defaults():
     }
 
 
-def test_moving_camera_preset_selects_the_tile_start():
+def test_moving_camera_preset_tries_both_starts():
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
         cfg = compose("config", overrides=["+scene=ego_street", "+preset=moving_camera"])
-    assert cfg.init.method == "tiles" and cfg.clustering.p_step_sigma == 2.0
+    assert cfg.init.method == "auto" and cfg.clustering.p_step_sigma == 2.0
 
 
 def test_coarse_to_fine_theta_step():

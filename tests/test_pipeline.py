@@ -12,7 +12,13 @@ from omegaconf import OmegaConf
 import optimizers
 from spatialseg.config import conf_dir
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.pipeline import prepare, reference_time, search_bounds, segment_recording
+from spatialseg.pipeline import (
+    prepare,
+    reference_time,
+    search_bounds,
+    segment_recording,
+    segment_window,
+)
 from spatialseg.recording import DepthMap
 from spatialseg.scenes import load_scene
 from spatialseg.volume import VolumeObjective
@@ -175,3 +181,37 @@ def test_events_on_occlusion_edges_do_not_steer_the_velocities():
     assert not prepared.on_edge[subset].any()
     edges_too = {**cfg, "clustering": {**cfg["clustering"], "step_edges": True}}
     assert _step_subset(prepared, 0.0, edges_too, seed=0) is None  # all 4,000 events
+
+
+def _with_init(cfg: dict, **init) -> dict:
+    return {**cfg, "init": {**cfg["init"], **init}}
+
+
+def test_auto_init_keeps_the_start_with_the_highest_total_contrast(interior):
+    """init.method=auto clusters from each start of init.auto and keeps the result whose
+    final total contrast (the objective) is highest."""
+    cfg, rec = interior
+    _, window = next(rec.windows())
+    alone = {
+        method: segment_window(
+            window, _with_init(cfg, method=method), optimizers.create("ssa_ga"), seed=0
+        )
+        for method in ("image_flow", "tiles")
+    }
+    auto = segment_window(
+        window, _with_init(cfg, method="auto"), optimizers.create("ssa_ga"), seed=0
+    )
+    best = max(alone, key=lambda m: alone[m].clustering.values.sum())
+    assert auto.init_method == best and alone["tiles"].init_method == "tiles"
+    assert np.array_equal(auto.labels, alone[best].labels)
+    assert np.array_equal(auto.clustering.thetas, alone[best].clustering.thetas)
+
+
+@pytest.mark.parametrize("starts", [[], ["image_flow", "kmeans"], None])
+def test_auto_init_rejects_unknown_starts(interior, starts):
+    cfg, rec = interior
+    _, window = next(rec.windows())
+    with pytest.raises(ValueError, match=r"init\.auto must list one or more of"):
+        segment_window(
+            window, _with_init(cfg, method="auto", auto=starts), optimizers.create("ssa_ga"), seed=0
+        )
