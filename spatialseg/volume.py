@@ -556,14 +556,17 @@ class VolumeObjective:
         sigmas = np.where(np.array(self.grid.shape) > 1, fine_sigma / strides, 0.0)
         with self._voted(theta) as (args, mass):
             value = self._voted_value(args, mass)
+            if stride == 1:  # the vote is the P-step's; its cell cache stays valid
+                raw[...] = self._interior(self._padded)
         events, grid_args = args[:4], (self._origin, 1.0 / coarse.voxel_size, self._proj)
+        if stride > 1:
+            _scatter(*events, *grid_args, padded, self._cells, self._fracs)
+            try:
+                raw[...] = self._interior(padded)
+            finally:
+                _clear(*events, *grid_args, padded, self._cells)
+        gaussian_smooth(raw, sigmas, out=smooth, work=raw, mode="reflect")
         sampled = np.empty(self.n_events)
-        _scatter(*events, *grid_args, padded, self._cells, self._fracs)
-        try:
-            raw[...] = self._interior(padded)
-            gaussian_smooth(raw, sigmas, out=smooth, work=raw, mode="reflect")
-        finally:
-            _clear(*events, *grid_args, padded, self._cells)
         self._interior(padded)[...] = smooth
         try:
             _sample(*events[:2], *events[3:], *grid_args, padded, self._cells, self._fracs, sampled)
