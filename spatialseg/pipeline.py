@@ -458,13 +458,15 @@ def _step_stages(
     t_ref: float,
     cfg: Mapping[str, Any],
     optimizer: Any,
+    evaluator: ModelEvaluator,
     *,
     seed: int,
 ) -> tuple[StepStage, ...]:
     """The theta-step's stages: the optimiser on the theta-step's events (:func:`_step_subset`;
     none: the loop's default stage); with ``clustering.coarse`` set, first on a grid
     ``stride`` times coarser and at most ``events`` of them, then ``refine`` on them at full
-    resolution (a coarse-to-fine search: the global phase on the cheaper problem)."""
+    resolution (a coarse-to-fine search: the global phase on the cheaper problem).
+    ``evaluator`` is the loop's, over every event: the refinement's when they all step."""
     ccfg = cfg["clustering"]
     budget, coarse = int(ccfg["evals_per_step"]), ccfg["coarse"]
     step = _step_subset(prepared, t_ref, cfg, seed=seed)
@@ -472,7 +474,7 @@ def _step_stages(
         return () if step is None else (StepStage(step[0], optimizer, budget, step[1]),)
     if coarse["events"] is not None and int(coarse["events"]) < 1:
         raise ValueError(f"clustering.coarse.events must be >= 1 or null, got {coarse['events']}")
-    evaluator, pool = step or (_evaluator(prepared, t_ref, cfg), np.arange(len(prepared.t)))
+    fine, pool = step or (evaluator, np.arange(len(prepared.t)))
     sample = pool
     if coarse["events"] is not None and len(pool) > int(coarse["events"]):
         draw = np.random.default_rng(seed + 1).choice(len(pool), int(coarse["events"]), False)
@@ -481,7 +483,7 @@ def _step_stages(
     refine = named_optimizer(str(coarse["refine"]), "clustering.coarse.refine")
     return (
         StepStage(_evaluator(prepared, t_ref, cfg, sample, grid), optimizer, budget, sample),
-        StepStage(evaluator, refine, int(coarse["refine_evals"]), pool),
+        StepStage(fine, refine, int(coarse["refine_evals"]), pool),
     )
 
 
@@ -590,8 +592,9 @@ def segment_window(
         timings["init"] += time.perf_counter() - start
         start = time.perf_counter()
         if objectives is None:  # after the first start, so a tile start's volumes are freed
-            stages = _step_stages(prepared, t_ref, cfg, optimizer, seed=seed)
-            objectives = (_evaluator(prepared, t_ref, cfg), stages)
+            evaluator = _evaluator(prepared, t_ref, cfg)
+            stages = _step_stages(prepared, t_ref, cfg, optimizer, evaluator, seed=seed)
+            objectives = (evaluator, stages)
         result = _cluster_from(
             init, prepared, objectives, cfg, optimizer, bounds, seed=seed, on_iteration=on_iteration
         )

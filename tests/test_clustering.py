@@ -156,7 +156,7 @@ def test_coarse_to_fine_theta_step():
     """clustering.coarse: the optimiser on a coarser grid and fewer events, then the
     refinement at full resolution; both budgets are spent every iteration, and the window
     is still segmented."""
-    from spatialseg.pipeline import _step_stages, prepare, reference_time
+    from spatialseg.pipeline import _evaluator, _step_stages, prepare, reference_time
 
     overrides = ["+scene=interior", "clustering.coarse.stride=2", "clustering.coarse.events=1000"]
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
@@ -166,7 +166,10 @@ def test_coarse_to_fine_theta_step():
     prepared = prepare(window, cfg)
     t_ref = reference_time(prepared.t, "middle")
     ssa_ga = optimizers.create("ssa_ga")
-    coarse, fine = _step_stages(prepared, t_ref, cfg, ssa_ga, seed=0)
+    full = _evaluator(prepared, t_ref, cfg)
+    coarse, fine = _step_stages(prepared, t_ref, cfg, ssa_ga, full, seed=0)
+    # every event steps (none on an edge, fewer than step_events): the loop's evaluator refines
+    assert fine.evaluator is full and len(fine.subset) == len(prepared.t)
     assert coarse.optimizer is ssa_ga and coarse.evaluator.n_events == 1000
     assert np.allclose(coarse.evaluator.inner.grid.voxel_size[:2], 2 * prepared.grid.voxel_size[:2])
     assert fine.evaluator.inner.grid is prepared.grid and fine.budget == 10
@@ -177,7 +180,7 @@ def test_coarse_to_fine_theta_step():
     bad = {**cfg, "clustering": {**cfg["clustering"], "coarse": {**cfg["clustering"]["coarse"]}}}
     bad["clustering"]["coarse"]["refine"] = "newton"
     with pytest.raises(ValueError, match=r"clustering\.coarse\.refine: unknown optimizer 'newton'"):
-        _step_stages(prepared, t_ref, bad, ssa_ga, seed=0)
+        _step_stages(prepared, t_ref, bad, ssa_ga, full, seed=0)
     bad["clustering"]["coarse"]["events"] = 0
     with pytest.raises(ValueError, match=r"clustering\.coarse\.events must be >= 1 or null"):
-        _step_stages(prepared, t_ref, bad, ssa_ga, seed=0)
+        _step_stages(prepared, t_ref, bad, ssa_ga, full, seed=0)
