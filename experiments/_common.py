@@ -24,6 +24,20 @@ def compose_config(*overrides: str) -> dict[str, Any]:
     return OmegaConf.to_container(cfg, resolve=True)
 
 
+def split_overrides(text: str) -> list[str]:
+    """Comma-separated Hydra overrides, split only at commas outside brackets, so a list
+    value (``clustering.p_step_sigma=[2,3]``) stays one override."""
+    parts, depth, current = [], 0, ""
+    for char in text:
+        depth += {"[": 1, "]": -1}.get(char, 0)
+        if char == "," and depth == 0:
+            parts.append(current)
+            current = ""
+        else:
+            current += char
+    return [p for p in (*parts, current) if p]
+
+
 def simulated_scenes() -> list[str]:
     """Names of the shipped scenes that the simulator produces."""
     root = conf_dir() / "scene"

@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from _common import positive_count, write_json
+from _common import positive_count, split_overrides, write_json
 
 from spatialseg.config import group_options
 
@@ -111,7 +111,7 @@ def _segment(rec: Path, run: Path, optimizer: str, timeout: float) -> tuple[floa
     name, _, overrides = optimizer.partition(":")
     if name != DEFAULT:
         cmd.append(f"optimizer={name}")
-    cmd.extend(o for o in overrides.split(",") if o)
+    cmd.extend(split_overrides(overrides))
     run.parent.mkdir(parents=True, exist_ok=True)
     wall, peak = _run_child(cmd, run.parent, run.parent / f"{run.name}.log", timeout)
     return wall, peak, json.loads((run / "result.json").read_text())

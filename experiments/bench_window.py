@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import compose_config, positive_count, write_json
+from _common import compose_config, positive_count, split_overrides, write_json
 from hydra.utils import instantiate
 
 from spatialseg.metrics import segmentation_metrics
@@ -30,7 +30,7 @@ DEFAULT = "default"
 
 def time_config(scene: str, events: int, config: str, repeats: int) -> dict:
     """Cold and warm times of one config on one simulated window."""
-    overrides = [] if config == DEFAULT else [o for o in config.split(",") if o]
+    overrides = [] if config == DEFAULT else split_overrides(config)
     cfg = compose_config(f"+scene={scene}", f"window.events={events}", *overrides)
     rec = load_scene(cfg["scene"], seed=0, window_events=events)
     times = []

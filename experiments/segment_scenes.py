@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import compose_config, simulated_scenes, write_json
+from _common import compose_config, simulated_scenes, split_overrides, write_json
 from hydra.utils import instantiate
 
 from spatialseg.metrics import segmentation_metrics
@@ -31,7 +31,7 @@ def run_one(scene: str, variant: str, seed: int, events: int) -> dict:
     """Simulate and segment one scene with one model variant; return its metrics and time."""
     k = N_CLUSTERS.get(scene, 2)
     model, _, extra = variant.partition(":")
-    overrides = [o for o in extra.split(",") if o]
+    overrides = split_overrides(extra)
     cfg = compose_config(
         f"+scene={scene}", f"model={model}", f"n_clusters={k}", f"seed={seed}", *overrides
     )

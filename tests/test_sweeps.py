@@ -16,6 +16,7 @@ EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
 sys.path.insert(0, str(EXPERIMENTS))  # the experiments import _common as a sibling module
 import paper_figures  # noqa: E402
 import sweep_report  # noqa: E402
+from _common import split_overrides  # noqa: E402
 
 TINY = ("window.events=2000", "output.plots=false", "output.progress=false")
 
@@ -208,3 +209,14 @@ def test_paper_figures_on_a_tiny_budget(tmp_path, monkeypatch, capsys):
         artifacts = {a.path for a in _client(tmp_path / "mlflow.db").list_artifacts(run_id)}
         assert {"result.json", "labels.npy"} <= artifacts
         assert artifacts & {"figure6_exterior.png", "figure7_interior.png"}
+
+
+def test_experiment_overrides_keep_list_values_whole():
+    """The experiments' ``model:a=1,b=[2,3]`` overrides split at commas outside brackets."""
+    assert split_overrides("a=1,clustering.p_step_sigma=[2,3],+preset=x") == [
+        "a=1",
+        "clustering.p_step_sigma=[2,3]",
+        "+preset=x",
+    ]
+    assert split_overrides("") == []
+    assert split_overrides("x=[1,[2,3]],y=2") == ["x=[1,[2,3]]", "y=2"]
