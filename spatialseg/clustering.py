@@ -49,7 +49,7 @@ class ClusterEvaluator(Protocol):
     def grad(self, theta: np.ndarray) -> np.ndarray: ...
     def batch_value(self, thetas: np.ndarray) -> np.ndarray: ...
     def p_step(
-        self, theta: np.ndarray, sigma: float, stride: int = 1
+        self, theta: np.ndarray, sigma: float | Sequence[float], stride: int = 1
     ) -> tuple[np.ndarray, float]: ...
 
 
@@ -224,7 +224,11 @@ class StepStage:
 
 
 def _responses(
-    evaluator: ClusterEvaluator, thetas: np.ndarray, p: np.ndarray, sigma: float, stride: int
+    evaluator: ClusterEvaluator,
+    thetas: np.ndarray,
+    p: np.ndarray,
+    sigma: float | Sequence[float],
+    stride: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``c_j(x'_kj)``: each cluster's (smoothed) volume sampled at its warped events (N x K),
     and each cluster's contrast over all events (K,), from the same votes."""
@@ -245,7 +249,7 @@ def iterative_clustering(
     *,
     rules: ConvergenceRules,
     evals_per_step: int,
-    p_step_sigma: float,
+    p_step_sigma: float | Sequence[float],
     seed: int,
     p_step_stride: int = 1,
     on_iteration: Callable[[IterationRecord], None] | None = None,
@@ -255,8 +259,9 @@ def iterative_clustering(
 
     ``bounds`` (dim x 2) is the search box for every velocity. The optimiser seed of each
     theta-step derives from ``seed`` so the whole loop is deterministic. ``p_step_sigma``
-    (voxels, 0 = off) smooths each volume before the P-step samples it, so an event's
-    response reflects its neighbourhood rather than the texture of a single voxel;
+    (voxels, 0 = off; one number, or one per axis x, y, depth) smooths each volume before
+    the P-step samples it, so an event's response reflects its neighbourhood rather than
+    the texture of a single voxel;
     ``p_step_stride`` does so on a grid that many times coarser in x and y (same total blur).
     ``stages`` replace the theta-step's one stage (``optimizer`` with ``evals_per_step`` on
     ``evaluator``), e.g. to optimise on a subset of the events or on a coarser grid first;

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -135,9 +135,11 @@ class ModelEvaluator:
         """The volume of warped events for ``theta``."""
         return self.inner.volume(self._full(theta))
 
-    def p_step(self, theta: np.ndarray, sigma: float, stride: int = 1) -> tuple[np.ndarray, float]:
-        """The volume for ``theta``, smoothed by ``sigma`` voxels, at each warped event, and
-        the contrast of the volume (the P-step)."""
+    def p_step(
+        self, theta: np.ndarray, sigma: float | Sequence[float], stride: int = 1
+    ) -> tuple[np.ndarray, float]:
+        """The volume for ``theta``, smoothed by ``sigma`` voxels (one number, or x, y,
+        depth), at each warped event, and the contrast of the volume (the P-step)."""
         return self.inner.p_step(self._full(theta), sigma, stride)
 
 
@@ -507,6 +509,25 @@ def _evaluator(
     return ModelEvaluator(volume, prepared.dim)
 
 
+def p_step_sigmas(value: Any) -> tuple[float, float, float]:
+    """``clustering.p_step_sigma`` as (x, y, depth) voxels: one number for every axis, or a
+    pair ``[image, depth]`` (x and y share the first)."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        parts = [value]
+    elif isinstance(value, Sequence) and not isinstance(value, str):
+        parts = list(value)
+    else:
+        parts = []
+    numbers = all(isinstance(v, int | float) and not isinstance(v, bool) for v in parts)
+    sigmas = [float(v) for v in parts] if numbers else []
+    if len(sigmas) not in (1, 2) or not all(np.isfinite(v) and v >= 0 for v in sigmas):
+        raise ValueError(
+            f"clustering.p_step_sigma must be a number >= 0 or a pair [image, depth] of them "
+            f"(voxels), got {value!r}"
+        )
+    return (sigmas[0], sigmas[0], sigmas[-1])
+
+
 def _rules(ccfg: Mapping[str, Any]) -> ConvergenceRules:
     """The loop's stopping rules from ``clustering``."""
     return ConvergenceRules(
@@ -548,7 +569,7 @@ def _cluster_from(
         bounds,
         rules=_rules(ccfg),
         evals_per_step=int(ccfg["evals_per_step"]),
-        p_step_sigma=float(ccfg["p_step_sigma"]),
+        p_step_sigma=p_step_sigmas(ccfg["p_step_sigma"]),
         p_step_stride=int(ccfg["p_step_stride"]),
         seed=seed,
         on_iteration=on_iteration,

@@ -31,7 +31,7 @@ Design (details in ``docs/volume.md``):
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
 import numba
@@ -528,11 +528,13 @@ class VolumeObjective:
             self._pstep = (stride, grid, padded, *volumes)
         return self._pstep[1:]
 
-    def p_step(self, theta: np.ndarray, sigma: float, stride: int = 1) -> tuple[np.ndarray, float]:
-        """``V(theta)`` smoothed by a Gaussian of ``sigma`` voxels (axes with one voxel left
-        alone; mirrored at the grid's border) and interpolated at each warped event (N,): the
-        P-step's ``c_j(x'_kj)``; and the objective of ``V(theta)``. In buffers reused from
-        call to call.
+    def p_step(
+        self, theta: np.ndarray, sigma: float | Sequence[float], stride: int = 1
+    ) -> tuple[np.ndarray, float]:
+        """``V(theta)`` smoothed by a Gaussian of ``sigma`` voxels (one number, or one per axis
+        x, y, depth; axes with one voxel left alone; mirrored at the grid's border) and
+        interpolated at each warped event (N,): the P-step's ``c_j(x'_kj)``; and the
+        objective of ``V(theta)``. In buffers reused from call to call.
 
         ``stride`` > 1 votes, smooths and samples on a grid that many times coarser in x and
         y, per fine voxel's area; the Gaussian there is narrowed so that it and the coarser
@@ -545,14 +547,15 @@ class VolumeObjective:
         cost 6 % accuracy on a 4,000-event interior window).
         """
         coarse, padded, raw, smooth = self._p_step_buffers(stride)
-        if sigma**2 < (stride**2 - 1) / 3:
+        strides = coarse.voxel_size / self.grid.voxel_size
+        sigmas = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (3,))
+        if np.any(sigmas[strides > 1] ** 2 < (stride**2 - 1) / 3):
             raise ValueError(
                 f"a P-step stride of {stride} needs a smoothing sigma of at least "
-                f"{np.sqrt((stride**2 - 1) / 3):.2f} voxels, got {sigma}; lower "
+                f"{np.sqrt((stride**2 - 1) / 3):.2f} voxels in x and y, got {sigma}; lower "
                 "clustering.p_step_stride or raise clustering.p_step_sigma"
             )
-        strides = coarse.voxel_size / self.grid.voxel_size
-        fine_sigma = np.sqrt(sigma**2 - (strides**2 - 1) / 3)
+        fine_sigma = np.sqrt(sigmas**2 - (strides**2 - 1) / 3)
         sigmas = np.where(np.array(self.grid.shape) > 1, fine_sigma / strides, 0.0)
         with self._voted(theta) as (args, mass):
             value = self._voted_value(args, mass)

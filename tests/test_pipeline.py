@@ -13,6 +13,7 @@ import optimizers
 from spatialseg.config import conf_dir
 from spatialseg.metrics import segmentation_metrics
 from spatialseg.pipeline import (
+    p_step_sigmas,
     prepare,
     reference_time,
     search_bounds,
@@ -215,3 +216,31 @@ def test_auto_init_rejects_unknown_starts(interior, starts):
         segment_window(
             window, _with_init(cfg, method="auto", auto=starts), optimizers.create("ssa_ga"), seed=0
         )
+
+
+def _with_sigma(cfg: dict, sigma) -> dict:
+    return {**cfg, "clustering": {**cfg["clustering"], "p_step_sigma": sigma}}
+
+
+def test_p_step_sigma_pair_is_image_then_depth(interior):
+    """``[image, depth]`` smooths x and y by the first and depth by the second: an equal pair
+    segments exactly as the number, a different depth sigma changes the responses."""
+    cfg, rec = interior
+    _, window = next(rec.windows())
+    cfg = {**cfg, "clustering": {**cfg["clustering"], "max_iterations": 2}}
+
+    def run(sigma):
+        return segment_window(window, _with_sigma(cfg, sigma), optimizers.create("ssa_ga"), seed=0)
+
+    number, pair, deeper = run(3.0), run([3.0, 3.0]), run([3.0, 1.0])
+    assert np.array_equal(number.probabilities, pair.probabilities)
+    assert not np.array_equal(number.probabilities, deeper.probabilities)
+    assert p_step_sigmas([2, 3]) == (2.0, 2.0, 3.0) and p_step_sigmas(2.5) == (2.5, 2.5, 2.5)
+
+
+@pytest.mark.parametrize("sigma", [[1.0, 2.0, 3.0], [], "wide", -1.0, [2.0, float("nan")], True])
+def test_p_step_sigma_rejects_bad_values(interior, sigma):
+    cfg, rec = interior
+    _, window = next(rec.windows())
+    with pytest.raises(ValueError, match=r"p_step_sigma must be a number >= 0 or a pair"):
+        segment_window(window, _with_sigma(cfg, sigma), optimizers.create("ssa_ga"), seed=0)

@@ -282,13 +282,14 @@ def test_invalid_theta_raises():
 
 
 @GRIDS
-@pytest.mark.parametrize("sigma", [0.0, 1.5])
+@pytest.mark.parametrize("sigma", [0.0, 1.5, (1.0, 1.0, 2.5)])
 def test_p_step_is_the_references(grid, sigma):
-    """Vote, smooth (mirrored at the border), interpolate at each warped event, and the
-    contrast of the vote; twice, as the buffers are reused."""
+    """Vote, smooth (mirrored at the border; one sigma or one per axis), interpolate at each
+    warped event, and the contrast of the vote; twice, as the buffers are reused."""
     points, dt, w = _events(400, seed=8, grid=grid)
     ev = VolumeObjective(points, dt, grid, "variance", w)
-    sigmas = [sigma if n > 1 else 0.0 for n in grid.shape]
+    per_axis = np.broadcast_to(sigma, (3,))
+    sigmas = [s if n > 1 else 0.0 for s, n in zip(per_axis, grid.shape, strict=True)]
     volume = gaussian_filter(ref.volume(points, dt, THETA, grid, w), sigmas, mode="reflect")
     for _ in range(2):
         responses, value = ev.p_step(THETA, sigma)
@@ -298,11 +299,14 @@ def test_p_step_is_the_references(grid, sigma):
 
 
 @GRIDS
-def test_p_step_stride_is_the_coarse_references(grid):
+@pytest.mark.parametrize("depth_sigma", [None, 0.5])
+def test_p_step_stride_is_the_coarse_references(grid, depth_sigma):
     """``stride`` 2: the reference vote on a grid twice as coarse in x and y (depth keeps its
-    bins), smoothed by the narrowed Gaussian, sampled, per fine voxel's area."""
+    bins and its own sigma when given), smoothed by the narrowed Gaussian, sampled, per fine
+    voxel's area."""
     points, dt, w = _events(400, seed=9, grid=grid)
     sigma, (nx, ny, nz) = 1.5, grid.shape
+    depth = sigma if depth_sigma is None else depth_sigma
     coarse = VoxelGrid(
         grid.origin,
         grid.voxel_size * [2.0, 2.0, 1.0],
@@ -311,10 +315,10 @@ def test_p_step_stride_is_the_coarse_references(grid):
     )
     narrowed = np.sqrt(sigma**2 - 1.0) / 2.0
     volume = ref.volume(points, dt, THETA, coarse, w)
-    volume = gaussian_filter(volume, [narrowed, narrowed, sigma], mode="reflect")
+    volume = gaussian_filter(volume, [narrowed, narrowed, depth], mode="reflect")
     ev = VolumeObjective(points, dt, grid, "variance", w)
     for stride in (2, 1, 2):  # buffers change with the stride and come back
-        responses, value = ev.p_step(THETA, sigma, stride)
+        responses, value = ev.p_step(THETA, (sigma, sigma, depth), stride)
         if stride == 2:
             _close(responses, ref.sample(points, dt, THETA, coarse, volume) / 4.0, 1e-9)
         _close(value, ref.value(points, dt, THETA, grid, w), 1e-9)
@@ -339,5 +343,8 @@ def test_p_step_stride_needs_enough_smoothing():
     ev = VolumeObjective(*_events(50)[:2], GRID, "variance")
     with pytest.raises(ValueError, match=r"stride of 3 needs a smoothing sigma of at least 1\.63"):
         ev.p_step(THETA, 1.0, 3)
+    with pytest.raises(ValueError, match="in x and y"):
+        ev.p_step(THETA, (1.0, 1.0, 5.0), 3)
+    ev.p_step(THETA, (2.0, 2.0, 0.0), 3)  # depth is not coarsened, so any sigma there
     with pytest.raises(ValueError, match="grid stride must be an integer >= 1"):
         ev.p_step(THETA, 1.0, 0)
