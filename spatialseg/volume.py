@@ -548,14 +548,14 @@ class VolumeObjective:
         """
         coarse, padded, raw, smooth = self._p_step_buffers(stride)
         strides = coarse.voxel_size / self.grid.voxel_size
-        sigmas = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (3,))
-        if np.any(sigmas[strides > 1] ** 2 < (stride**2 - 1) / 3):
+        requested = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (3,))
+        if np.any(requested[strides > 1] ** 2 < (stride**2 - 1) / 3):
             raise ValueError(
                 f"a P-step stride of {stride} needs a smoothing sigma of at least "
                 f"{np.sqrt((stride**2 - 1) / 3):.2f} voxels in x and y, got {sigma}; lower "
                 "clustering.p_step_stride or raise clustering.p_step_sigma"
             )
-        fine_sigma = np.sqrt(sigmas**2 - (strides**2 - 1) / 3)
+        fine_sigma = np.sqrt(requested**2 - (strides**2 - 1) / 3)
         sigmas = np.where(np.array(self.grid.shape) > 1, fine_sigma / strides, 0.0)
         with self._voted(theta) as (args, mass):
             value = self._voted_value(args, mass)
