@@ -36,10 +36,12 @@ __all__ = [
     "assign_labels",
     "init_candidates",
     "prepare",
+    "reference_time",
     "search_bounds",
     "segment_loaded",
     "segment_recording",
     "segment_window",
+    "window_objective",
 ]
 
 log = logging.getLogger(__name__)
@@ -228,7 +230,7 @@ def _tiles_init(
         return None
 
     def evaluator_for(index: np.ndarray) -> ModelEvaluator:
-        return _evaluator(prepared, t_ref, cfg, index)
+        return window_objective(prepared, t_ref, cfg, index)
 
     tiles = hypotheses.Tiles(evaluator_for, event_tile, len(counts))
     velocities, tile_label = hypotheses.tile_motions(
@@ -452,7 +454,7 @@ def _step_subset(
         return None
     if limit is not None and len(pool) > int(limit):
         pool = np.sort(np.random.default_rng(seed).choice(pool, int(limit), replace=False))
-    return _evaluator(prepared, t_ref, cfg, pool), pool
+    return window_objective(prepared, t_ref, cfg, pool), pool
 
 
 def _step_stages(
@@ -484,21 +486,21 @@ def _step_stages(
     grid = prepared.grid.coarsened(int(coarse["stride"]))
     refine = named_optimizer(str(coarse["refine"]), "clustering.coarse.refine")
     return (
-        StepStage(_evaluator(prepared, t_ref, cfg, sample, grid), optimizer, budget, sample),
+        StepStage(window_objective(prepared, t_ref, cfg, sample, grid), optimizer, budget, sample),
         StepStage(fine, refine, int(coarse["refine_evals"]), pool),
     )
 
 
-def _evaluator(
+def window_objective(
     prepared: Prepared,
     t_ref: float,
     cfg: Mapping[str, Any],
     index: Any = slice(None),
     grid: VoxelGrid | None = None,
 ) -> ModelEvaluator:
-    """The configured objective over the window's events ``index`` (default all) on ``grid``
-    (default the window's), stored in ``volume.dtype`` (float32 halves the memory per event,
-    float64 is the more accurate)."""
+    """The configured objective (one cluster's contrast, weights set by the caller) over the
+    window's events ``index`` (default all) on ``grid`` (default the window's), stored in
+    ``volume.dtype`` (float32 halves the memory per event, float64 is the more accurate)."""
     volume = VolumeObjective(
         prepared.points[index],
         prepared.t[index] - t_ref,
@@ -613,7 +615,7 @@ def segment_window(
         timings["init"] += time.perf_counter() - start
         start = time.perf_counter()
         if objectives is None:  # after the first start, so a tile start's volumes are freed
-            evaluator = _evaluator(prepared, t_ref, cfg)
+            evaluator = window_objective(prepared, t_ref, cfg)
             stages = _step_stages(prepared, t_ref, cfg, optimizer, evaluator, seed=seed)
             objectives = (evaluator, stages)
         result = _cluster_from(

@@ -156,7 +156,7 @@ def test_coarse_to_fine_theta_step():
     """clustering.coarse: the optimiser on a coarser grid and fewer events, then the
     refinement at full resolution; both budgets are spent every iteration, and the window
     is still segmented."""
-    from spatialseg.pipeline import _evaluator, _step_stages, prepare, reference_time
+    from spatialseg.pipeline import _step_stages, prepare, reference_time, window_objective
 
     overrides = ["+scene=interior", "clustering.coarse.stride=2", "clustering.coarse.events=1000"]
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
@@ -166,7 +166,7 @@ def test_coarse_to_fine_theta_step():
     prepared = prepare(window, cfg)
     t_ref = reference_time(prepared.t, "middle")
     ssa_ga = optimizers.create("ssa_ga")
-    full = _evaluator(prepared, t_ref, cfg)
+    full = window_objective(prepared, t_ref, cfg)
     coarse, fine = _step_stages(prepared, t_ref, cfg, ssa_ga, full, seed=0)
     # every event steps (none on an edge, fewer than step_events): the loop's evaluator refines
     assert fine.evaluator is full and len(fine.subset) == len(prepared.t)
