@@ -46,6 +46,14 @@ def simulated_scenes() -> list[str]:
     ]
 
 
+def median_range(values: list[float | None], fmt: str) -> str:
+    """Median (min-max) of a metric over seeds, skipping missing values; "-" when none."""
+    v = [x for x in values if x is not None]
+    if not v:
+        return "-"
+    return f"{np.median(v):{fmt}} ({min(v):{fmt}}-{max(v):{fmt}})"
+
+
 def write_json(path: Path, payload: Any) -> None:
     """Write the experiment's results as JSON (creating the directory)."""
     path.parent.mkdir(parents=True, exist_ok=True)

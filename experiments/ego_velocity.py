@@ -19,7 +19,7 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from _common import compose_config, simulated_scenes, write_json
+from _common import compose_config, median_range, simulated_scenes, write_json
 from scipy.optimize import minimize
 
 from spatialseg.pipeline import ModelEvaluator, prepare, reference_time, window_objective
@@ -84,11 +84,6 @@ def run_one(scene: str, seed: int, events: int, overrides: list[str]) -> dict:
     }
 
 
-def _cell(values: list[float], fmt: str) -> str:
-    """Median (min-max) over seeds."""
-    return f"{np.median(values):{fmt}} ({min(values):{fmt}}-{max(values):{fmt}})"
-
-
 def markdown(rows: list[dict]) -> str:
     """The table of medians (min-max over seeds) per scene and window length."""
     lines = [
@@ -100,10 +95,10 @@ def markdown(rows: list[dict]) -> str:
         for events in dict.fromkeys(r["events"] for r in rows):
             sel = [r for r in rows if r["scene"] == scene and r["events"] == events]
             lines.append(
-                f"| {scene} | {events} | {_cell([r['duration'] for r in sel], '.3f')} | "
-                f"{_cell([r['maximum_error_rel'] for r in sel], '.2f')} | "
-                f"{_cell([r['contrast_rel']['0.75'] for r in sel], '.4f')} | "
-                f"{_cell([r['contrast_rel']['1.25'] for r in sel], '.4f')} |"
+                f"| {scene} | {events} | {median_range([r['duration'] for r in sel], '.3f')} | "
+                f"{median_range([r['maximum_error_rel'] for r in sel], '.2f')} | "
+                f"{median_range([r['contrast_rel']['0.75'] for r in sel], '.4f')} | "
+                f"{median_range([r['contrast_rel']['1.25'] for r in sel], '.4f')} |"
             )
     return "\n".join(lines)
 

@@ -19,7 +19,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import compose_config, simulated_scenes, split_overrides, write_json
+from _common import (
+    compose_config,
+    median_range,
+    simulated_scenes,
+    split_overrides,
+    write_json,
+)
 from hydra.utils import instantiate
 
 from spatialseg.metrics import segmentation_metrics
@@ -65,14 +71,6 @@ def run_one(scene: str, variant: str, seed: int, events: int) -> dict:
     }
 
 
-def _cell(values: list[float], fmt: str) -> str:
-    """Median (min-max) of a metric over seeds."""
-    v = [x for x in values if x is not None]
-    if not v:
-        return "-"
-    return f"{np.median(v):{fmt}} ({min(v):{fmt}}-{max(v):{fmt}})"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3)
@@ -97,11 +95,11 @@ def main() -> None:
         for model in args.models:
             sel = [r for r in rows if r["scene"] == scene and r["model"] == model]
             print(
-                f"| {scene} | {model} | {_cell([r['accuracy'] for r in sel], '.4f')} | "
-                f"{_cell([r['mean_iou'] for r in sel], '.3f')} | "
-                f"{_cell([r['velocity_error_rel'] for r in sel], '.2f')} | "
-                f"{_cell([r['static_velocity_error_rel'] for r in sel], '.2f')} | "
-                f"{_cell([r['seconds'] for r in sel], '.2f')} |"
+                f"| {scene} | {model} | {median_range([r['accuracy'] for r in sel], '.4f')} | "
+                f"{median_range([r['mean_iou'] for r in sel], '.3f')} | "
+                f"{median_range([r['velocity_error_rel'] for r in sel], '.2f')} | "
+                f"{median_range([r['static_velocity_error_rel'] for r in sel], '.2f')} | "
+                f"{median_range([r['seconds'] for r in sel], '.2f')} |"
             )
 
 
