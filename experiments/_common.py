@@ -14,7 +14,15 @@ from omegaconf import OmegaConf
 from spatialseg.config import conf_dir, group_options
 from spatialseg.events import EventStream
 
-__all__ = ["compose_config", "positive_count", "simulated_scenes", "synthetic_events", "write_json"]
+__all__ = [
+    "compose_config",
+    "median_range",
+    "positive_count",
+    "simulated_scenes",
+    "split_overrides",
+    "synthetic_events",
+    "write_json",
+]
 
 
 def compose_config(*overrides: str) -> dict[str, Any]:

@@ -19,7 +19,13 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from _common import compose_config, median_range, simulated_scenes, write_json
+from _common import (
+    compose_config,
+    median_range,
+    positive_count,
+    simulated_scenes,
+    write_json,
+)
 from scipy.optimize import minimize
 
 from spatialseg.pipeline import ModelEvaluator, prepare, reference_time, window_objective
@@ -106,11 +112,15 @@ def markdown(rows: list[dict]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3)
-    parser.add_argument("--events", type=int, nargs="+", default=[15000, 30000, 45000])
+    parser.add_argument("--events", type=positive_count, nargs="+", default=[15000, 30000, 45000])
     parser.add_argument("--scenes", nargs="+", default=None)
-    parser.add_argument("--set", nargs="*", default=[], help="config overrides, e.g. z_bins")
+    parser.add_argument(
+        "--set", nargs="*", default=[], help="config overrides, e.g. volume.z_bins=8"
+    )
     parser.add_argument("--out", type=Path, default=Path("outputs/ego_velocity.json"))
     args = parser.parse_args()
+    if args.seeds < 1:
+        parser.error(f"--seeds must be >= 1, got {args.seeds}")
     choices = moving_camera_scenes()
     unknown = sorted(set(args.scenes or ()) - set(choices))
     if unknown:

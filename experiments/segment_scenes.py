@@ -22,6 +22,7 @@ import numpy as np
 from _common import (
     compose_config,
     median_range,
+    positive_count,
     simulated_scenes,
     split_overrides,
     write_json,
@@ -74,11 +75,13 @@ def run_one(scene: str, variant: str, seed: int, events: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3)
-    parser.add_argument("--events", type=int, default=15000)
+    parser.add_argument("--events", type=positive_count, default=15000)
     parser.add_argument("--models", nargs="+", default=["spatial", "planar"])
     parser.add_argument("--scenes", nargs="+", default=None)
     parser.add_argument("--out", type=Path, default=Path("outputs/segment_scenes.json"))
     args = parser.parse_args()
+    if args.seeds < 1:
+        parser.error(f"--seeds must be >= 1, got {args.seeds}")
     rows = [
         run_one(scene, model, seed, args.events)
         for scene in (args.scenes or simulated_scenes())
