@@ -26,7 +26,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from spatialseg.denoise import denoise_mask
-from spatialseg.recording import Camera, DepthMap, Keyframe, Recording
+from spatialseg.recording import Camera, DepthMap, Keyframe, Recording, event_boundaries
 
 __all__ = [
     "DEPTH_SOURCES",
@@ -442,18 +442,6 @@ def _keyframes_around(keyframes: tuple[Keyframe, ...], t0: float, t1: float) -> 
     return frames[first : last + 1]
 
 
-def _event_boundaries(t: np.ndarray, window_events: int) -> np.ndarray:
-    """Window boundary times every ``window_events`` events, the first and last event included.
-
-    A final window shorter than half of ``window_events`` is merged into the one before it,
-    so no window is a handful of events (too few to cluster).
-    """
-    starts = np.arange(0, len(t), window_events)
-    if len(starts) > 1 and len(t) - starts[-1] < window_events / 2:
-        starts = starts[:-1]
-    return np.unique(np.r_[t[starts], t[-1]])
-
-
 def attach_depth(recording: Recording, source: DepthSource, *, window_events: int) -> Recording:
     """The recording with ``source``'s depth maps at its keyframe times or every N events.
 
@@ -487,7 +475,7 @@ def attach_depth(recording: Recording, source: DepthSource, *, window_events: in
             )
         pairs = [(k.t, k.image) for k in frames]
     else:
-        pairs = [(float(b), None) for b in _event_boundaries(t, int(window_events))]
+        pairs = [(float(b), None) for b in event_boundaries(t, int(window_events))]
         if len(pairs) < 2:
             raise ValueError(
                 f"{recording.name}: all events share one timestamp; a window needs two times"

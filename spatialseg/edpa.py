@@ -1,8 +1,8 @@
 """EDPA: give every event a depth and lift it from pixels (x, y, t) to metres (X, Y, Z, t).
 
 Section 1 of METHOD.md. The depth of an event is the linear interpolation in time of the
-two depth maps bounding its window, read at the event's pixel (the printed Eq. 1 of the
-paper drops the ``Z1`` term and is not implemented). Pixels are back-projected with the
+two depth maps bracketing it, read at the event's pixel (the printed Eq. 1 of the paper
+drops the ``Z1`` term and is not implemented). Pixels are back-projected with the
 full pinhole model. Depths that are non-finite or <= 0 are unknown.
 """
 
@@ -179,20 +179,29 @@ def back_project(x: np.ndarray, y: np.ndarray, z: np.ndarray, camera: Camera) ->
     return np.column_stack(((x - camera.cx) * z / camera.fx, (y - camera.cy) * z / camera.fy, z))
 
 
-def _window_maps(window: Recording) -> tuple[DepthMap, DepthMap]:
-    """The two depth maps bounding a window; raise if it has another number."""
-    if len(window.depth_maps) != 2:
+def _window_maps(window: Recording) -> tuple[DepthMap, ...]:
+    """The time-sorted depth maps of a window or span of windows; raise with fewer than two."""
+    if len(window.depth_maps) < 2:
         raise ValueError(
-            f"{window.name}: a window needs exactly 2 depth maps, got "
-            f"{len(window.depth_maps)}; take windows from Recording.windows()"
+            f"{window.name}: a window needs two depth maps (or more for a span of windows), "
+            f"got {len(window.depth_maps)}; take windows from Recording.windows()"
         )
-    return window.depth_maps[0], window.depth_maps[1]
+    return window.depth_maps
+
+
+def _bracketing_pair(t: np.ndarray, maps: tuple[DepthMap, ...]) -> np.ndarray:
+    """Index i of the maps (i, i + 1) bracketing each time; times outside all maps take the
+    first or the last pair (and are clamped there by :func:`_time_fraction`)."""
+    times = np.array([m.t for m in maps])
+    return np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(maps) - 2)
 
 
 def lift(
     window: Recording, *, unknown_depth: str, fill_radius: int, edge_ratio: float | None = None
 ) -> Lifted:
-    """Depth and 3-D position of each event of a window (two depth maps), per METHOD.md 1.
+    """Depth and 3-D position of each event of a window, per METHOD.md 1: each event between
+    the two of the window's depth maps that bracket its time (a window has two; a span of
+    windows, ``window.context``, one more per window).
 
     ``unknown_depth`` says what happens to an event with no depth in either map: "drop"
     excludes it (``valid`` False; the pipeline labels it -1), "fill" takes, in each map,
@@ -207,21 +216,29 @@ def lift(
     ev = window.events
     if not len(ev):
         raise ValueError(f"{window.name}: the window has no events; check the window bounds")
-    first, second = _window_maps(window)
-    z1, z2 = _pixel_depths(ev, first, second)
-    depth = _interpolate(z1, z2, _time_fraction(ev.t, first.t, second.t), edge_ratio)
-    on_edge = occlusion_edges(z1, z2, edge_ratio)
-    missing = ~np.isfinite(depth)
-    if unknown_depth == "fill" and missing.any():
-        x, y = ev.x[missing], ev.y[missing]
-        z1 = fill_depth(first.depth, x, y, radius=fill_radius)
-        z2 = fill_depth(second.depth, x, y, radius=fill_radius)
-        depth[missing] = _interpolate(z1, z2, _time_fraction(ev.t[missing], first.t, second.t))
+    maps = _window_maps(window)
+    pair = _bracketing_pair(ev.t, maps)
+    depth = np.full(len(ev), np.nan)
+    on_edge = np.zeros(len(ev), dtype=bool)
+    for i in np.unique(pair):
+        sel = np.flatnonzero(pair == i)
+        first, second = maps[i], maps[i + 1]
+        z1, z2 = _pixel_depths(ev.select(sel), first, second)
+        s = _time_fraction(ev.t[sel], first.t, second.t)
+        depth[sel] = _interpolate(z1, z2, s, edge_ratio)
+        on_edge[sel] = occlusion_edges(z1, z2, edge_ratio)
+        missing = ~np.isfinite(depth[sel])
+        if unknown_depth == "fill" and missing.any():
+            x, y = ev.x[sel][missing], ev.y[sel][missing]
+            f1 = fill_depth(first.depth, x, y, radius=fill_radius)
+            f2 = fill_depth(second.depth, x, y, radius=fill_radius)
+            depth[sel[missing]] = _interpolate(f1, f2, s[missing])
     valid = np.isfinite(depth)
     if not valid.any():
+        sources = ", ".join(m.source for m in maps)
         raise ValueError(
             f"{window.name}: all events in the window have unknown depth; check the depth "
-            f"maps {first.source} and {second.source} (NaN or <= 0 means unknown)"
+            f"maps {sources} (NaN or <= 0 means unknown)"
         )
     points = back_project(ev.x[valid], ev.y[valid], depth[valid], window.camera)
     return Lifted(points=points, t=ev.t[valid].copy(), valid=valid, depth=depth, on_edge=on_edge)

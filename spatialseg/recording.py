@@ -14,7 +14,7 @@ import numpy as np
 
 from spatialseg.events import EventStream
 
-__all__ = ["Camera", "DepthMap", "GroundTruth", "Keyframe", "Recording"]
+__all__ = ["Camera", "DepthMap", "GroundTruth", "Keyframe", "Recording", "event_boundaries"]
 
 
 @dataclass(frozen=True)
@@ -144,18 +144,42 @@ class Recording:
         A window holds the events with ``T_i <= t < T_{i+1}`` (the last one also takes
         events at exactly ``T_{i+1}``) and the two depth maps bounding it.
         """
+        for index, window, _ in self.spans(0):
+            yield index, window
+
+    def spans(self, context: int) -> Iterator[tuple[np.ndarray, Recording, np.ndarray]]:
+        """Yield ``(event_indices, span, inner)`` for each window (:meth:`windows`): the span
+        is the window with up to ``context`` neighbouring windows on each side (their events,
+        depth maps and keyframes); ``inner`` locates the window's own events in the span.
+        """
         maps = self.depth_maps
         if len(maps) < 2:
             raise ValueError(
                 f"{self.name}: {len(maps)} depth map(s); EDPA needs at least two "
                 "(one at the window's start and one at its end)"
             )
-        t = self.events.t
-        for i in range(len(maps) - 1):
-            last = i == len(maps) - 2
-            lo = np.searchsorted(t, maps[i].t, side="left")
-            hi = np.searchsorted(t, maps[i + 1].t, side="right" if last else "left")
-            index = np.arange(lo, hi)
-            window = self.select(slice(int(lo), int(hi)))
-            frames = tuple(k for k in self.keyframes if maps[i].t <= k.t <= maps[i + 1].t)
-            yield index, replace(window, depth_maps=(maps[i], maps[i + 1]), keyframes=frames)
+        if isinstance(context, bool) or int(context) != context or context < 0:
+            raise ValueError(f"window.context must be an integer >= 0, got {context!r}")
+        t, last = self.events.t, len(maps) - 1
+        bounds = [int(np.searchsorted(t, m.t, side="left")) for m in maps[:-1]]
+        bounds.append(int(np.searchsorted(t, maps[-1].t, side="right")))
+        for i in range(last):
+            first, end = max(i - context, 0), min(i + 1 + context, last)
+            lo, hi = bounds[first], bounds[end]
+            index = np.arange(bounds[i], bounds[i + 1])
+            span_maps = maps[first : end + 1]
+            frames = tuple(k for k in self.keyframes if maps[first].t <= k.t <= maps[end].t)
+            span = replace(self.select(slice(lo, hi)), depth_maps=span_maps, keyframes=frames)
+            yield index, span, index - lo
+
+
+def event_boundaries(t: np.ndarray, window_events: int) -> np.ndarray:
+    """Window boundary times every ``window_events`` events, the first and last event included.
+
+    A final window shorter than half of ``window_events`` is merged into the one before it,
+    so no window is a handful of events (too few to cluster).
+    """
+    starts = np.arange(0, len(t), window_events)
+    if len(starts) > 1 and len(t) - starts[-1] < window_events / 2:
+        starts = starts[:-1]
+    return np.unique(np.r_[t[starts], t[-1]])

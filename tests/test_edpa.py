@@ -147,8 +147,21 @@ def test_lift_errors_are_clear():
     with pytest.raises(ValueError, match="unknown_depth must be one of"):
         lift(_window(CASES), unknown_depth="zero", fill_radius=1)
     one_map = Recording(_events(CASES), CAM, (DepthMap(T1, Z1),))
-    with pytest.raises(ValueError, match="exactly 2 depth maps"):
+    with pytest.raises(ValueError, match="needs two depth maps"):
         lift(one_map, unknown_depth="drop", fill_radius=1)
+
+
+def test_lift_over_a_span_takes_each_events_bracketing_maps():
+    """Three maps (a span of two windows): an event before T2 is interpolated between the
+    first two maps, one after T2 between the last two, exactly as a window of its own."""
+    t3, z3 = 14.0, np.full((3, 4), 10.0)
+    maps = (DepthMap(T1, Z1), DepthMap(T2, Z2), DepthMap(t3, z3))
+    later = [(0, 0, 13.0, 6.5), (2, 1, 13.5, 8.0), (3, 2, 15.0, 10.0)]  # Z2 -> 10, clamped
+    first = CASES[1:8]
+    lifted = lift(Recording(_events(first + later), CAM, maps), unknown_depth="drop", fill_radius=1)
+    np.testing.assert_allclose(lifted.depth, _expected(first + later), equal_nan=True)
+    alone = lift(_window(first), unknown_depth="drop", fill_radius=1)
+    np.testing.assert_array_equal(lifted.depth[: len(first)], alone.depth)
 
 
 def test_voxel_size_rule():

@@ -55,3 +55,31 @@ def test_windows_split_events_between_consecutive_depth_maps():
 def test_windows_need_two_depth_maps():
     with pytest.raises(ValueError, match="EDPA needs at least two"):
         list(Recording(_events([0.0]), CAM, (_depth(0.0),)).windows())
+
+
+def test_spans_add_neighbouring_windows_and_locate_the_window_in_them():
+    t = np.arange(8) * 0.5  # 0 .. 3.5; maps at 0, 1, 2, 3.5: windows of 2, 2 and 4 events
+    rec = Recording(_events(t), CAM, tuple(_depth(x) for x in (0.0, 1.0, 2.0, 3.5)))
+    spans = list(rec.spans(1))
+    assert [i.tolist() for i, _, _ in spans] == [[0, 1], [2, 3], [4, 5, 6, 7]]
+    assert [s.events.t.tolist() for _, s, _ in spans] == [
+        t[:4].tolist(),
+        t.tolist(),
+        t[2:].tolist(),
+    ]
+    assert [[d.t for d in s.depth_maps] for _, s, _ in spans] == [
+        [0.0, 1.0, 2.0],
+        [0.0, 1.0, 2.0, 3.5],
+        [1.0, 2.0, 3.5],
+    ]
+    for index, span, inner in spans:
+        np.testing.assert_array_equal(span.events.t[inner], t[index])
+    alone = [(i.tolist(), s.events.t.tolist()) for i, s, _ in rec.spans(0)]
+    assert alone == [(i.tolist(), w.events.t.tolist()) for i, w in rec.windows()]
+
+
+@pytest.mark.parametrize("context", [-1, 1.5])
+def test_spans_refuse_a_bad_context(context):
+    rec = Recording(_events([0.0, 1.0]), CAM, (_depth(0.0), _depth(1.0)))
+    with pytest.raises(ValueError, match=r"window\.context must be an integer >= 0"):
+        list(rec.spans(context))
