@@ -79,7 +79,12 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     plain = OmegaConf.to_container(cfg, resolve=True)
     if cfg.scene.get("stream"):
         return run_stream(cfg, plain, out_dir)
-    recording = load_scene(cfg.scene, seed=int(cfg.seed), window_events=int(cfg.window.events))
+    recording = load_scene(
+        cfg.scene,
+        seed=int(cfg.seed),
+        window_events=int(cfg.window.events),
+        windows=cfg.window.count,
+    )
     timings = {"load": time.perf_counter() - start}
     optimizer = build_optimizer(cfg)
     progress = log_iteration if cfg.output.progress else None

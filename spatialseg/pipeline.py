@@ -73,7 +73,9 @@ class Prepared:
 
 @dataclass(frozen=True, eq=False)
 class WindowResult:
-    """The segmentation of one window (labels and probabilities cover all its events)."""
+    """The segmentation of one window: labels and probabilities cover its own events; the
+    clustering, ``prepared`` and ``t_ref`` describe the span it was clustered on (the
+    window with its ``window.context`` neighbours; the window alone by default)."""
 
     labels: np.ndarray
     probabilities: np.ndarray
@@ -647,7 +649,12 @@ def segment_recording(
 ) -> SegmentationResult:
     """Segment every window (each pair of consecutive depth maps); labels cover all events.
 
-    Events outside every window (before the first or after the last depth map) are -1.
+    With ``window.context`` = c > 0 each window is clustered together with up to c
+    neighbouring windows on each side (EDPA between each event's own pair of maps) and
+    keeps the labels of its own events. Decision: a longer span pins the velocities down
+    (a moving camera's static scene) while each event is still labelled once, by the span
+    centred on its window (docs/method.md, "Context windows"). Events outside every window
+    (before the first or after the last depth map) are -1.
     """
     k = int(cfg["n_clusters"])
     n = len(recording.events)
@@ -657,9 +664,11 @@ def segment_recording(
     seeds = np.random.default_rng(seed).integers(
         0, 2**31 - 1, size=max(len(recording.depth_maps), 1)
     )
-    for w, (index, window) in enumerate(recording.windows()):
-        log.info("window %d: %d events", w, len(window.events))
-        res = segment_window(window, cfg, optimizer, seed=int(seeds[w]), on_iteration=on_iteration)
+    spans = recording.spans(cfg["window"]["context"])
+    for w, (index, span, inner) in enumerate(spans):
+        log.info("window %d: %d events (%d with its context)", w, len(index), len(span.events))
+        res = segment_window(span, cfg, optimizer, seed=int(seeds[w]), on_iteration=on_iteration)
+        res = replace(res, labels=res.labels[inner], probabilities=res.probabilities[inner])
         labels[index] = res.labels
         probabilities[index] = res.probabilities
         results.append(res)

@@ -61,15 +61,18 @@ def _scene_camera(scene: Mapping[str, Any]) -> Camera | None:
         raise ValueError(f"scene.camera: {exc}") from None
 
 
-def load_scene(scene: Mapping[str, Any], *, seed: int, window_events: int) -> Recording:
-    """The recording a scene config describes (``kind: simulated`` or ``kind: recording``),
-    as stored: denoising and depth sources come after (:func:`spatialseg.depth.prepare_recording`).
+def load_scene(
+    scene: Mapping[str, Any], *, seed: int, window_events: int, windows: int = 1
+) -> Recording:
+    """The recording a scene config describes (``kind: simulated``: ``windows`` windows of
+    ``window_events`` events; ``kind: recording``: the file), as stored: denoising and depth
+    sources come after (:func:`spatialseg.depth.prepare_recording`).
     """
     kind = scene.get("kind")
     if kind == "simulated":
         from spatialseg.simulate import simulate_scene
 
-        return simulate_scene(scene, seed=seed, max_events=window_events)
+        return simulate_scene(scene, seed=seed, max_events=window_events, windows=windows)
     if kind == "recording":
         from spatialseg.io import read_any
 

@@ -148,6 +148,31 @@ def test_window_ends_at_max_events_with_depth_maps_and_keyframes_at_its_ends(int
     assert np.allclose(gt.motions[1], interior["objects"][0]["velocity"])
 
 
+def test_windows_put_a_depth_map_and_keyframe_every_window_of_events(interior):
+    rec = simulate_scene(interior, seed=0, max_events=1000, windows=3)
+    ev = rec.events
+    assert len(ev) == 3000
+    expected = [ev.t[0], ev.t[1000], ev.t[2000], ev.t[-1]]
+    assert [d.t for d in rec.depth_maps] == expected
+    assert [k.t for k in rec.keyframes] == expected
+    one = simulate_scene(interior, seed=0, max_events=1000)
+    np.testing.assert_array_equal(one.events.t, ev.t[:1000])
+    assert [len(i) for i, _ in rec.windows()] == [1000, 1000, 1000]
+
+
+@pytest.mark.parametrize(
+    ("events", "windows", "message"),
+    [
+        (1000, 0, "window.count must be a positive integer"),
+        (1000, True, "window.count must be a positive integer"),
+        (None, 2, "window.count > 1 needs window.events"),
+    ],
+)
+def test_bad_window_counts_are_refused(interior, events, windows, message):
+    with pytest.raises(ValueError, match=message):
+        simulate_scene(interior, seed=0, max_events=events, windows=windows)
+
+
 @pytest.mark.parametrize("near_first", [True, False])
 def test_zbuffer_shows_the_nearer_object_whatever_the_order(near_first):
     cfg = _scene()

@@ -67,7 +67,9 @@ def run(cfg: DictConfig) -> Path:
     from spatialseg.plots import save_scene_preview
     from spatialseg.simulate import simulate_scene
 
-    recording = simulate_scene(cfg.scene, seed=int(cfg.seed), max_events=events)
+    recording = simulate_scene(
+        cfg.scene, seed=int(cfg.seed), max_events=events, windows=cfg.window.count
+    )
     write_recording(recording, out, overwrite=bool(cfg.overwrite))
     OmegaConf.save(cfg, out / "simulate.yaml", resolve=True)
     if cfg.preview:

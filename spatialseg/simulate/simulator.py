@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from spatialseg.events import EventStream
-from spatialseg.recording import DepthMap, GroundTruth, Keyframe, Recording
+from spatialseg.recording import DepthMap, GroundTruth, Keyframe, Recording, event_boundaries
 from spatialseg.simulate.depth_error import corrupt_depth_maps
 from spatialseg.simulate.render import STATIC_SCENE, Frame, Renderer, surface_count
 from spatialseg.simulate.scene import Scene, parse_scene
@@ -73,12 +73,16 @@ def _ground_truth(scene: Scene, labels: np.ndarray) -> GroundTruth:
     return GroundTruth(labels, motions, names)
 
 
-def simulate_scene(scene_cfg: Mapping[str, Any], *, seed: int, max_events: int | None) -> Recording:
+def simulate_scene(
+    scene_cfg: Mapping[str, Any], *, seed: int, max_events: int | None, windows: int = 1
+) -> Recording:
     """Simulate a ``conf/scene`` config into a Recording with ground truth, deterministically.
 
-    The window ends at the ``max_events``-th event or at the scene's ``duration``. Depth
-    maps and keyframes are rendered at the first event (0 without events) and at the last
-    event (the end of the simulation without events); the scene's ``depth_error`` corrupts
+    The recording ends at the ``max_events * windows``-th event or at the scene's
+    ``duration``. Depth maps and keyframes are rendered at the first event (0 without
+    events) and at the last event (the end of the simulation without events), and with
+    ``windows`` > 1 at every ``max_events``-th event between (a last window of fewer than
+    half as many events joins the one before); the scene's ``depth_error`` corrupts
     these maps only (labels come from the exact renders). Ground-truth ids: 0 is the static
     scene (planes and props; an object only with a nonzero ego-velocity), 1..N the objects
     in YAML order, -1 noise.
@@ -89,6 +93,11 @@ def simulate_scene(scene_cfg: Mapping[str, Any], *, seed: int, max_events: int |
         or max_events < 1
     ):
         raise ValueError(f"max_events must be a positive integer or None, got {max_events!r}")
+    if isinstance(windows, bool) or not isinstance(windows, int | np.integer) or windows < 1:
+        raise ValueError(f"window.count must be a positive integer, got {windows!r}")
+    if max_events is None and windows > 1:
+        raise ValueError("window.count > 1 needs window.events, the events per window")
+    per_window, max_events = max_events, None if max_events is None else max_events * windows
     scene = parse_scene(scene_cfg)
     textures, thresholds = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
     keys = textures.integers(0, 2**62, surface_count(scene))
@@ -108,6 +117,8 @@ def simulate_scene(scene_cfg: Mapping[str, Any], *, seed: int, max_events: int |
     )
     labels = np.concatenate([c.label for c in chunks] or [np.zeros(0, np.int64)])[keep]
     times = (events.t[0], events.t[-1]) if len(events) else (0.0, end)
+    if per_window is not None and windows > 1 and len(events):
+        times = event_boundaries(events.t, per_window)
     frames = [renderer.render(float(t)) for t in times]
     depth_maps = tuple(
         DepthMap(f.t, f.depth, source=f"simulated depth t={f.t:.6f}") for f in frames
