@@ -666,7 +666,8 @@ def segment_recording(
     )
     spans = recording.spans(cfg["window"]["context"])
     for w, (index, span, inner) in enumerate(spans):
-        log.info("window %d: %d events (%d with its context)", w, len(index), len(span.events))
+        extra = f" ({len(span.events)} with its context)" if len(span.events) > len(index) else ""
+        log.info("window %d: %d events%s", w, len(index), extra)
         res = segment_window(span, cfg, optimizer, seed=int(seeds[w]), on_iteration=on_iteration)
         res = replace(res, labels=res.labels[inner], probabilities=res.probabilities[inner])
         labels[index] = res.labels
