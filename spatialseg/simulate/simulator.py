@@ -73,6 +73,11 @@ def _ground_truth(scene: Scene, labels: np.ndarray) -> GroundTruth:
     return GroundTruth(labels, motions, names)
 
 
+def _is_count(value: Any) -> bool:
+    """A positive integer (a bool is not one)."""
+    return not isinstance(value, bool) and isinstance(value, int | np.integer) and value >= 1
+
+
 def simulate_scene(
     scene_cfg: Mapping[str, Any], *, seed: int, max_events: int | None, windows: int = 1
 ) -> Recording:
@@ -87,13 +92,9 @@ def simulate_scene(
     scene (planes and props; an object only with a nonzero ego-velocity), 1..N the objects
     in YAML order, -1 noise.
     """
-    if max_events is not None and (
-        isinstance(max_events, bool)
-        or not isinstance(max_events, int | np.integer)
-        or max_events < 1
-    ):
+    if max_events is not None and not _is_count(max_events):
         raise ValueError(f"max_events must be a positive integer or None, got {max_events!r}")
-    if isinstance(windows, bool) or not isinstance(windows, int | np.integer) or windows < 1:
+    if not _is_count(windows):
         raise ValueError(f"window.count must be a positive integer, got {windows!r}")
     if max_events is None and windows > 1:
         raise ValueError("window.count > 1 needs window.events, the events per window")
