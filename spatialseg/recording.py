@@ -158,7 +158,7 @@ class Recording:
                 f"{self.name}: {len(maps)} depth map(s); EDPA needs at least two "
                 "(one at the window's start and one at its end)"
             )
-        if isinstance(context, bool) or int(context) != context or context < 0:
+        if isinstance(context, bool) or not isinstance(context, int | np.integer) or context < 0:
             raise ValueError(f"window.context must be an integer >= 0, got {context!r}")
         t, last = self.events.t, len(maps) - 1
         bounds = [int(np.searchsorted(t, m.t, side="left")) for m in maps[:-1]]

@@ -78,7 +78,7 @@ def test_spans_add_neighbouring_windows_and_locate_the_window_in_them():
     assert alone == [(i.tolist(), w.events.t.tolist()) for i, w in rec.windows()]
 
 
-@pytest.mark.parametrize("context", [-1, 1.5])
+@pytest.mark.parametrize("context", [-1, 1.5, "abc"])
 def test_spans_refuse_a_bad_context(context):
     rec = Recording(_events([0.0, 1.0]), CAM, (_depth(0.0), _depth(1.0)))
     with pytest.raises(ValueError, match=r"window\.context must be an integer >= 0"):
