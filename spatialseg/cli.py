@@ -68,15 +68,16 @@ def _report(summary: dict[str, Any], out_dir: Path) -> None:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Validate the config, segment the scene, write the outputs; return result.json's content."""
-    from spatialseg.pipeline import log_iteration, segment_loaded
+    from spatialseg.pipeline import check_config, log_iteration, segment_loaded
     from spatialseg.results import summarise, write_outputs
     from spatialseg.scenes import load_scene
     from spatialseg.tracking import record
 
     validate_config(cfg, HydraConfig.get().runtime.choices)
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    check_config(plain)
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     start = time.perf_counter()
-    plain = OmegaConf.to_container(cfg, resolve=True)
     if cfg.scene.get("stream"):
         return run_stream(cfg, plain, out_dir)
     recording = load_scene(

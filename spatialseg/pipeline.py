@@ -26,7 +26,7 @@ from spatialseg.clustering import (
 )
 from spatialseg.grid import VoxelGrid, grid_around, project_jacobian
 from spatialseg.objectives import make_objective
-from spatialseg.recording import Camera, Recording
+from spatialseg.recording import Camera, Recording, check_window_context
 from spatialseg.volume import VolumeObjective
 
 __all__ = [
@@ -34,6 +34,7 @@ __all__ = [
     "SegmentationResult",
     "WindowResult",
     "assign_labels",
+    "check_config",
     "init_candidates",
     "prepare",
     "reference_time",
@@ -193,19 +194,27 @@ def _image_flow_init(
     )
 
 
-def named_optimizer(name: str, key: str) -> Any:
-    """The optimiser of ``conf/optimizer/<name>.yaml`` with its defaults (``key``: the
-    config key that named it, for the error message)."""
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
-
-    from spatialseg.config import conf_dir, group_options
+def _check_optimizer_name(name: str, key: str) -> None:
+    """Raise a one-line error unless ``name`` is a ``conf/optimizer`` option (``key``: the
+    config key that named it)."""
+    from spatialseg.config import group_options
 
     if name not in group_options("optimizer"):
         raise ValueError(
             f"{key}: unknown optimizer {name!r}; choose from "
             f"{', '.join(group_options('optimizer'))}"
         )
+
+
+def named_optimizer(name: str, key: str) -> Any:
+    """The optimiser of ``conf/optimizer/<name>.yaml`` with its defaults (``key``: the
+    config key that named it, for the error message)."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from spatialseg.config import conf_dir
+
+    _check_optimizer_name(name, key)
     return instantiate(OmegaConf.load(conf_dir() / "optimizer" / f"{name}.yaml"))
 
 
@@ -274,8 +283,7 @@ def initialise(
     method = params.pop("method")
     params.pop("tiles")
     params.pop("auto")
-    if method not in INIT_METHODS:
-        raise ValueError(f"init.method must be one of {(*INIT_METHODS, 'auto')}, got {method!r}")
+    _check_init_method(method)
     if method == "tiles":
         if optimizer is None:
             raise ValueError("init.method=tiles needs the run's optimizer")
@@ -301,6 +309,24 @@ def initialise(
     )
 
 
+def _check_init_method(method: str) -> None:
+    """Raise a one-line error unless ``method`` is one start of :data:`INIT_METHODS`."""
+    if method not in INIT_METHODS:
+        raise ValueError(f"init.method must be one of {(*INIT_METHODS, 'auto')}, got {method!r}")
+
+
+def check_config(cfg: Mapping[str, Any]) -> None:
+    """Refuse, before any data is loaded or simulated, the settings that would otherwise fail
+    only once the run reaches them, or never (an optimiser named for a stage that does not
+    run): the starts, the optimisers named by key, the P-step smoothing, the context."""
+    init_candidates(cfg["init"])
+    init_candidates({**cfg["init"], "method": "auto"})  # init.auto, read only with auto
+    _check_optimizer_name(str(cfg["init"]["tiles"]["refit"]), "init.tiles.refit")
+    _check_optimizer_name(str(cfg["clustering"]["coarse"]["refine"]), "clustering.coarse.refine")
+    p_step_sigmas(cfg["clustering"]["p_step_sigma"])
+    check_window_context(cfg["window"]["context"])
+
+
 def init_candidates(init_cfg: Mapping[str, Any]) -> list[str]:
     """The starts a window is clustered from: ``init.method``, or for ``auto`` each of
     ``init.auto`` (:func:`segment_window` keeps the result with the highest total contrast).
@@ -314,6 +340,7 @@ def init_candidates(init_cfg: Mapping[str, Any]) -> list[str]:
     """
     method = init_cfg["method"]
     if method != "auto":
+        _check_init_method(method)
         return [method]
     names = list(init_cfg["auto"] or [])
     if not names or any(n not in INIT_METHODS for n in names):

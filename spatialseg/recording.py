@@ -9,12 +9,21 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
 from spatialseg.events import EventStream
 
-__all__ = ["Camera", "DepthMap", "GroundTruth", "Keyframe", "Recording", "event_boundaries"]
+__all__ = [
+    "Camera",
+    "DepthMap",
+    "GroundTruth",
+    "Keyframe",
+    "Recording",
+    "check_window_context",
+    "event_boundaries",
+]
 
 
 @dataclass(frozen=True)
@@ -158,8 +167,7 @@ class Recording:
                 f"{self.name}: {len(maps)} depth map(s); EDPA needs at least two "
                 "(one at the window's start and one at its end)"
             )
-        if isinstance(context, bool) or not isinstance(context, int | np.integer) or context < 0:
-            raise ValueError(f"window.context must be an integer >= 0, got {context!r}")
+        check_window_context(context)
         t, last = self.events.t, len(maps) - 1
         bounds = [int(np.searchsorted(t, m.t, side="left")) for m in maps[:-1]]
         bounds.append(int(np.searchsorted(t, maps[-1].t, side="right")))
@@ -171,6 +179,12 @@ class Recording:
             frames = tuple(k for k in self.keyframes if maps[first].t <= k.t <= maps[end].t)
             span = replace(self.select(slice(lo, hi)), depth_maps=span_maps, keyframes=frames)
             yield index, span, index - lo
+
+
+def check_window_context(context: Any) -> None:
+    """Raise a one-line error unless ``window.context`` is an integer >= 0 (not a bool)."""
+    if isinstance(context, bool) or not isinstance(context, int | np.integer) or context < 0:
+        raise ValueError(f"window.context must be an integer >= 0, got {context!r}")
 
 
 def event_boundaries(t: np.ndarray, window_events: int) -> np.ndarray:

@@ -27,6 +27,7 @@ def test_help_works_outside_the_checkout(tmp_path):
             "unknown config key 'clustering.tolerance'",
         ),
         (("+scene=recording",), "scene=recording needs a path"),
+        (("+scene=interior", "init.tiles.refit=nope"), "init.tiles.refit: unknown optimizer"),
     ],
 )
 def test_user_mistakes_give_one_line(tmp_path, args, message):

@@ -14,6 +14,7 @@ from spatialseg.config import conf_dir
 from spatialseg.metrics import segmentation_metrics
 from spatialseg.pipeline import (
     SegmentationResult,
+    check_config,
     p_step_sigmas,
     prepare,
     reference_time,
@@ -274,6 +275,29 @@ def test_p_step_sigma_pair_is_image_then_depth(interior):
     assert np.array_equal(number.probabilities, pair.probabilities)
     assert not np.array_equal(number.probabilities, deeper.probabilities)
     assert p_step_sigmas([2, 3]) == (2.0, 2.0, 3.0) and p_step_sigmas(2.5) == (2.5, 2.5, 2.5)
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("init.tiles.refit=nope", r"init\.tiles\.refit: unknown optimizer 'nope'"),
+        ("clustering.coarse.refine=bobyqa", r"clustering\.coarse\.refine: unknown optimizer"),
+        ("init.method=flows", r"init\.method must be one of .*got 'flows'"),
+        ("init.auto=[tiles,x]", r"init\.auto must list one or more of"),
+        ("clustering.p_step_sigma=-1", r"p_step_sigma must be a number >= 0"),
+        ("window.context=-2", r"window\.context must be an integer >= 0, got -2"),
+    ],
+)
+def test_check_config_refuses_settings_a_run_would_reach_late(override, message):
+    """Each of these fails only deep in a run (or never: the default start does not use the
+    tile refit); check_config refuses it from the config alone, before any data."""
+    with pytest.raises(ValueError, match=message):
+        check_config(_config(override))
+
+
+def test_check_config_accepts_every_shipped_default():
+    check_config(_config())
+    check_config(_config("+preset=moving_camera", "window.context=1"))
 
 
 @pytest.mark.parametrize("sigma", [[1.0, 2.0, 3.0], [], "wide", -1.0, [2.0, float("nan")], True])
