@@ -13,6 +13,9 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from spatialseg.events import EventStream
 from spatialseg.recording import Camera, Recording
 
 __all__ = ["load_scene", "packaged_data", "stream_scene"]
@@ -87,9 +90,10 @@ def load_scene(
 
 
 def stream_scene(scene: Mapping[str, Any], *, window_events: int) -> Iterator[Recording]:
-    """A ``kind: recording`` scene's file as recordings of ``window_events`` events each,
-    read one after the other (:func:`spatialseg.io.iter_event_chunks`), so a file larger
-    than memory can be segmented window by window. They carry no depth maps and no
+    """A ``kind: recording`` scene's file as recordings of ``window_events`` events each
+    (the last one up to 1.5 times that), read one after the other
+    (:func:`spatialseg.io.iter_event_chunks`), so a file larger than memory can be
+    segmented window by window. They carry no depth maps and no
     keyframes; the camera is ``scene.camera`` or a nominal pinhole of ``scene.fov_deg``."""
     from spatialseg.io import iter_event_chunks, nominal_camera
 
@@ -103,7 +107,30 @@ def stream_scene(scene: Mapping[str, Any], *, window_events: int) -> Iterator[Re
         )
     path = _scene_path(scene)
     size = {} if camera is None else {"width": camera.width, "height": camera.height}
-    for chunk in iter_event_chunks(path, int(window_events), **size):
+    chunks = iter_event_chunks(path, int(window_events), **size)
+    for chunk in _merge_short_tail(chunks, int(window_events), str(path)):
         if camera is None:
             camera = nominal_camera(chunk.width, chunk.height, float(fov))
         yield Recording(chunk, camera, name=path.stem)
+
+
+def _merge_short_tail(
+    chunks: Iterator[EventStream], window_events: int, source: str
+) -> Iterator[EventStream]:
+    """The chunks one behind, a final chunk shorter than half of ``window_events`` joined to
+    the one before it (as :func:`spatialseg.recording.event_boundaries` does in memory), so
+    the last window is never a handful of events (too few to cluster)."""
+    held: EventStream | None = None
+    for chunk in chunks:
+        if held is not None and len(chunk) < window_events / 2:
+            chunk = EventStream(
+                *(np.concatenate([getattr(held, a), getattr(chunk, a)]) for a in "xytp"),
+                held.width,
+                held.height,
+                source=f"{source} (the last {len(held) + len(chunk)} events)",
+            )
+        elif held is not None:
+            yield held
+        held = chunk
+    if held is not None:
+        yield held

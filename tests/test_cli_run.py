@@ -126,9 +126,12 @@ def test_streamed_run_segments_window_by_window(recording_dir, tmp_path):
     n = len(read_recording(recording_dir).events)
     result = json.loads((out / "result.json").read_text())
     assert result["stream"] and result["n_events"] == n
-    assert len(result["windows"]) == -(-n // 1000)
     sizes = [w["n_events"] for w in result["windows"]]
-    assert sum(sizes) == n and set(sizes[:-1]) == {1000} and sizes[-1] <= 1000
+    tail = n % 1000
+    expected = [1000] * (n // 1000) + ([tail] if tail else [])
+    if 0 < tail < 500:  # a short last chunk joins the window before it
+        expected = [*expected[:-2], 1000 + tail]
+    assert sizes == expected
     assert np.load(out / "labels.npy").shape == (n,)
     assert np.load(out / "probabilities.npy").shape == (n, 2)
     assert not list(out.glob(".*.raw"))

@@ -113,3 +113,20 @@ def test_streaming_holds_a_fraction_of_the_whole_read(tmp_path: Path, suffix: st
     assert count == n
     assert whole > 17 * n  # t, x, y, p alone take 17 bytes per event
     assert streamed < whole / 4, (streamed, whole)
+
+
+@pytest.mark.parametrize(
+    ("n", "sizes"), [(2300, [1000, 1300]), (2600, [1000, 1000, 600]), (300, [300])]
+)
+def test_stream_scene_joins_a_short_last_chunk(tmp_path: Path, n: int, sizes: list[int]) -> None:
+    """A last chunk under half a window joins the one before it (as in-memory windows do),
+    so no streamed window is a handful of events; every event is kept, in order."""
+    from spatialseg.scenes import stream_scene
+
+    events = _events(n)
+    path = _write(events, tmp_path / "e.npz")
+    scene = {"kind": "recording", "path": str(path), "fov_deg": 60.0, "camera": None}
+    windows = list(stream_scene(scene, window_events=1000))
+    assert [len(w.events) for w in windows] == sizes
+    joined = np.concatenate([w.events.t for w in windows])
+    np.testing.assert_array_equal(joined, events.t)
