@@ -23,6 +23,7 @@ __all__ = [
     "Recording",
     "check_window_context",
     "event_boundaries",
+    "is_short_tail",
 ]
 
 
@@ -187,13 +188,20 @@ def check_window_context(context: Any) -> None:
         raise ValueError(f"window.context must be an integer >= 0, got {context!r}")
 
 
+def is_short_tail(n_events: int, window_events: int) -> bool:
+    """Whether a final window of ``n_events`` is too short to stand alone (under half of
+    ``window_events``): it joins the window before it, so no window is a handful of events
+    (too few to cluster)."""
+    return n_events < window_events / 2
+
+
 def event_boundaries(t: np.ndarray, window_events: int) -> np.ndarray:
     """Window boundary times every ``window_events`` events, the first and last event included.
 
-    A final window shorter than half of ``window_events`` is merged into the one before it,
-    so no window is a handful of events (too few to cluster).
+    A final window shorter than half of ``window_events`` is merged into the one before it
+    (:func:`is_short_tail`).
     """
     starts = np.arange(0, len(t), window_events)
-    if len(starts) > 1 and len(t) - starts[-1] < window_events / 2:
+    if len(starts) > 1 and is_short_tail(len(t) - starts[-1], window_events):
         starts = starts[:-1]
     return np.unique(np.r_[t[starts], t[-1]])

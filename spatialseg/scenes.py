@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from spatialseg.events import EventStream
-from spatialseg.recording import Camera, Recording
+from spatialseg.recording import Camera, Recording, is_short_tail
 
 __all__ = ["load_scene", "packaged_data", "stream_scene"]
 
@@ -117,12 +117,12 @@ def stream_scene(scene: Mapping[str, Any], *, window_events: int) -> Iterator[Re
 def _merge_short_tail(
     chunks: Iterator[EventStream], window_events: int, source: str
 ) -> Iterator[EventStream]:
-    """The chunks one behind, a final chunk shorter than half of ``window_events`` joined to
-    the one before it (as :func:`spatialseg.recording.event_boundaries` does in memory), so
-    the last window is never a handful of events (too few to cluster)."""
+    """The chunks one behind, a final chunk too short to stand alone (:func:`is_short_tail`)
+    joined to the one before it, as :func:`spatialseg.recording.event_boundaries` does in
+    memory."""
     held: EventStream | None = None
     for chunk in chunks:
-        if held is not None and len(chunk) < window_events / 2:
+        if held is not None and is_short_tail(len(chunk), window_events):
             chunk = EventStream(
                 *(np.concatenate([getattr(held, a), getattr(chunk, a)]) for a in "xytp"),
                 held.width,
