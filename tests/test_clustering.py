@@ -150,6 +150,7 @@ def test_moving_camera_preset_tries_both_starts_with_context_and_edge_events():
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
         cfg = compose("config", overrides=["+scene=ego_street", "+preset=moving_camera"])
     assert cfg.init.method == "auto" and list(cfg.clustering.p_step_sigma) == [1.5, 1.0]
+    assert cfg.clustering.p_step_stride == 1
     assert cfg.clustering.step_edges is True and cfg.window.context == 1 and cfg.window.count == 3
 
 
