@@ -131,11 +131,13 @@ def test_long_recording_is_segmented_window_by_window(interior):
     assert np.mean(seg.labels >= 0) > 0.9
 
 
-def _static_errors_and_accuracy(context: int) -> tuple[list[float], float, SegmentationResult]:
-    """ego_street in three windows of 3,000 events: each window's static-scene velocity
-    error (relative), the mean accuracy over the windows, and the segmentation."""
-    cfg = _config("scene=ego_street", "window.events=3000", f"window.context={context}")
-    rec = load_scene(cfg["scene"], seed=0, window_events=3000, windows=3)
+def _static_errors_and_accuracy(
+    scene: str, events: int, *overrides: str
+) -> tuple[list[float], float, SegmentationResult]:
+    """``scene`` in three windows of ``events`` events (seed 0): each window's static-scene
+    velocity error (relative), the mean accuracy over the windows, and the segmentation."""
+    cfg = _config(f"scene={scene}", f"window.events={events}", *overrides)
+    rec = load_scene(cfg["scene"], seed=0, window_events=events, windows=3)
     seg = segment_recording(rec, cfg, optimizers.create("ssa_ga"), seed=0)
     truth = -np.asarray(cfg["scene"]["camera"]["ego_velocity"], dtype=float)
     errors, accuracies = [], []
@@ -152,13 +154,24 @@ def test_context_clusters_each_window_with_its_neighbours_and_keeps_its_own_labe
     on 6,000; each keeps the labels of its own events. In these short windows the static
     scene's velocity is ill-determined alone (errors 0.95, 2.31, 0.15; mean accuracy 0.74)
     and pinned down with the neighbours (0.23, 0.03, 0.31; 0.89)."""
-    errors, accuracy, seg = _static_errors_and_accuracy(1)
+    errors, accuracy, seg = _static_errors_and_accuracy("ego_street", 3000, "window.context=1")
     assert [len(i) for i in seg.indices] == [3000, 3000, 3000]
     assert [w.prepared.valid.size for w in seg.windows] == [6000, 9000, 6000]
     assert [w.labels.size for w in seg.windows] == [3000, 3000, 3000]
-    alone_errors, alone_accuracy, _ = _static_errors_and_accuracy(0)
+    alone_errors, alone_accuracy, _ = _static_errors_and_accuracy("ego_street", 3000)
     assert max(errors) < 0.5 < max(alone_errors)
     assert accuracy > alone_accuracy + 0.05
+
+
+def test_moving_camera_preset_separates_a_walking_camera_from_a_person_crossing():
+    """ego_forward in three windows of 6,000 events: the defaults' image-flow start cannot
+    tell the corridor's expansion from the person crossing it, while +preset=moving_camera
+    (both starts, occlusion-edge events steering, context windows) finds both. Measured:
+    mean accuracy 0.74 -> 0.90; static velocity errors 1.16, 1.14, 1.15 -> 0.06, 0.43, 0.50."""
+    errors, accuracy, _ = _static_errors_and_accuracy("ego_forward", 6000, "+preset=moving_camera")
+    default_errors, default_accuracy, _ = _static_errors_and_accuracy("ego_forward", 6000)
+    assert accuracy > 0.85 and accuracy > default_accuracy + 0.1
+    assert errors[1] < 0.5 < min(default_errors)
 
 
 def test_a_negative_context_is_refused(interior):
