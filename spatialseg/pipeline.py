@@ -27,7 +27,7 @@ from spatialseg.clustering import (
 from spatialseg.grid import VoxelGrid, grid_around, project_jacobian
 from spatialseg.objectives import make_objective
 from spatialseg.recording import Camera, Recording, check_window_context
-from spatialseg.volume import VolumeObjective
+from spatialseg.volume import VolumeObjective, check_p_step_blur
 
 __all__ = [
     "Prepared",
@@ -318,12 +318,14 @@ def _check_init_method(method: str) -> None:
 def check_config(cfg: Mapping[str, Any]) -> None:
     """Refuse, before any data is loaded or simulated, the settings that would otherwise fail
     only once the run reaches them, or never (an optimiser named for a stage that does not
-    run): the starts, the optimisers named by key, the P-step smoothing, the context."""
+    run): the starts, the optimisers named by key, the P-step smoothing and its grid, the
+    context."""
     init_candidates(cfg["init"])
     init_candidates({**cfg["init"], "method": "auto"})  # init.auto, read only with auto
     _check_optimizer_name(str(cfg["init"]["tiles"]["refit"]), "init.tiles.refit")
     _check_optimizer_name(str(cfg["clustering"]["coarse"]["refine"]), "clustering.coarse.refine")
-    p_step_sigmas(cfg["clustering"]["p_step_sigma"])
+    sigmas = p_step_sigmas(cfg["clustering"]["p_step_sigma"])
+    check_p_step_blur(sigmas[0], int(cfg["clustering"]["p_step_stride"]), sigmas)
     check_window_context(cfg["window"]["context"])
 
 

@@ -43,7 +43,7 @@ from spatialseg.grid import VoxelGrid
 from spatialseg.objectives import MomentObjective, Objective, make_objective
 from spatialseg.smoothing import gaussian_smooth
 
-__all__ = ["VolumeObjective"]
+__all__ = ["VolumeObjective", "check_p_step_blur"]
 
 #: Storage dtypes the kernels are compiled for.
 DTYPES = (np.float32, np.float64)
@@ -339,6 +339,18 @@ def _finite_array(
     return arr.astype(dtype, copy=False)
 
 
+def check_p_step_blur(sigma_xy: float, stride: int, given: object) -> None:
+    """Raise unless a P-step grid ``stride`` times coarser in x and y fits in a smoothing of
+    ``sigma_xy`` voxels there: its voting and sampling tents alone blur by
+    ``(stride^2 - 1) / 3`` voxels squared (``given``: the setting, for the message)."""
+    if sigma_xy**2 < (stride**2 - 1) / 3:
+        raise ValueError(
+            f"a P-step stride of {stride} needs a smoothing sigma of at least "
+            f"{np.sqrt((stride**2 - 1) / 3):.2f} voxels in x and y, got {given}; lower "
+            "clustering.p_step_stride or raise clustering.p_step_sigma"
+        )
+
+
 class VolumeObjective:
     """The objective ``O(V(theta))`` of one cluster's VWE, its gradient, and P-step sampling.
 
@@ -549,12 +561,8 @@ class VolumeObjective:
         coarse, padded, raw, smooth = self._p_step_buffers(stride)
         strides = coarse.voxel_size / self.grid.voxel_size
         requested = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (3,))
-        if np.any(requested[strides > 1] ** 2 < (stride**2 - 1) / 3):
-            raise ValueError(
-                f"a P-step stride of {stride} needs a smoothing sigma of at least "
-                f"{np.sqrt((stride**2 - 1) / 3):.2f} voxels in x and y, got {sigma}; lower "
-                "clustering.p_step_stride or raise clustering.p_step_sigma"
-            )
+        if np.any(strides > 1):
+            check_p_step_blur(float(requested[strides > 1].min()), stride, sigma)
         fine_sigma = np.sqrt(requested**2 - (strides**2 - 1) / 3)
         sigmas = np.where(np.array(self.grid.shape) > 1, fine_sigma / strides, 0.0)
         with self._voted(theta) as (args, mass):

@@ -298,6 +298,7 @@ def test_p_step_sigma_pair_is_image_then_depth(interior):
         ("init.method=flows", r"init\.method must be one of .*got 'flows'"),
         ("init.auto=[tiles,x]", r"init\.auto must list one or more of"),
         ("clustering.p_step_sigma=-1", r"p_step_sigma must be a number >= 0"),
+        ("clustering.p_step_stride=6", r"a P-step stride of 6 needs a smoothing sigma"),
         ("window.context=-2", r"window\.context must be an integer >= 0, got -2"),
     ],
 )
