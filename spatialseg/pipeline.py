@@ -23,6 +23,7 @@ from spatialseg.clustering import (
     StepStage,
     initial_memberships,
     iterative_clustering,
+    maximize_contrast,
 )
 from spatialseg.grid import VoxelGrid, grid_around, project_jacobian
 from spatialseg.objectives import make_objective
@@ -38,6 +39,7 @@ __all__ = [
     "init_candidates",
     "prepare",
     "reference_time",
+    "refit_velocities",
     "search_bounds",
     "segment_loaded",
     "segment_recording",
@@ -324,6 +326,10 @@ def check_config(cfg: Mapping[str, Any]) -> None:
     init_candidates({**cfg["init"], "method": "auto"})  # init.auto, read only with auto
     _check_optimizer_name(str(cfg["init"]["tiles"]["refit"]), "init.tiles.refit")
     _check_optimizer_name(str(cfg["clustering"]["coarse"]["refine"]), "clustering.coarse.refine")
+    _check_optimizer_name(
+        str(cfg["clustering"]["refit"]["optimizer"]), "clustering.refit.optimizer"
+    )
+    _refit_budget(cfg)
     sigmas = p_step_sigmas(cfg["clustering"]["p_step_sigma"])
     check_p_step_blur(sigmas[0], int(cfg["clustering"]["p_step_stride"]), sigmas)
     check_window_context(cfg["window"]["context"])
@@ -610,6 +616,64 @@ def _cluster_from(
     )
 
 
+def _refit_budget(cfg: Mapping[str, Any]) -> int:
+    """``clustering.refit.evals``, an integer >= 0 (0: no refit), after checking
+    ``clustering.refit.radius`` is in (0, 1]; a one-line error otherwise."""
+    rcfg = cfg["clustering"]["refit"]
+    budget, radius = rcfg["evals"], rcfg["radius"]
+    if isinstance(budget, bool) or not isinstance(budget, int) or budget < 0:
+        raise ValueError(f"clustering.refit.evals must be an integer >= 0 (0: off), got {budget!r}")
+    if isinstance(radius, bool) or not isinstance(radius, int | float) or not 0 < radius <= 1:
+        raise ValueError(f"clustering.refit.radius must be a number in (0, 1], got {radius!r}")
+    return budget
+
+
+def refit_velocities(
+    result: ClusteringResult,
+    prepared: Prepared,
+    t_ref: float,
+    cfg: Mapping[str, Any],
+    bounds: np.ndarray,
+    *,
+    seed: int,
+) -> ClusteringResult:
+    """``result`` with each velocity re-fitted once (``clustering.refit``), memberships fixed,
+    on the events off occlusion edges, within ``radius`` of the search box around the loop's
+    velocity; the history keeps the loop's velocities.
+
+    Decision: an edge event takes the nearer depth, wrong for the far surface seen just
+    after the occluder passed, yet an object crossing the background has most of its events
+    there, so the loop may need them to label it (``clustering.step_edges``); the velocities
+    are then measured on the events whose depth holds, with the final memberships the loop's
+    last theta-step never saw. The refit polishes and does not search: over the whole box
+    the local optimiser's first steps, sized by the box, wandered along the flat ridge of a
+    short window's depth velocity (docs/method.md, "The velocity refit").
+    """
+    budget = _refit_budget(cfg)
+    if budget == 0:
+        return result
+    k = result.thetas.shape[0]
+    index = np.arange(prepared.points.shape[0])
+    if prepared.on_edge is not None and np.count_nonzero(~prepared.on_edge) >= k:
+        index = np.flatnonzero(~prepared.on_edge)
+    evaluator = window_objective(prepared, t_ref, cfg, index)
+    optimizer = named_optimizer(
+        str(cfg["clustering"]["refit"]["optimizer"]), "clustering.refit.optimizer"
+    )
+    reach = float(cfg["clustering"]["refit"]["radius"]) * (bounds[:, 1] - bounds[:, 0])
+    thetas = result.thetas.copy()
+    for j in range(k):
+        evaluator.set_weights(result.probabilities[index, j])
+        near = np.column_stack(
+            [
+                np.maximum(bounds[:, 0], thetas[j] - reach),
+                np.minimum(bounds[:, 1], thetas[j] + reach),
+            ]
+        )
+        thetas[j], _ = maximize_contrast(evaluator, optimizer, thetas[j], near, budget, seed)
+    return replace(result, thetas=thetas)
+
+
 def segment_window(
     window: Recording,
     cfg: Mapping[str, Any],
@@ -659,6 +723,9 @@ def segment_window(
             kept = (result, init, method)
     assert kept is not None  # init_candidates names at least one start
     result, init, method = kept
+    start = time.perf_counter()
+    result = refit_velocities(result, prepared, t_ref, cfg, bounds, seed=seed)
+    timings["refit"] = time.perf_counter() - start
     labels = assign_labels(
         result.probabilities, prepared.valid, float(cfg["clustering"]["min_probability"])
     )

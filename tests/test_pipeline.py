@@ -152,8 +152,8 @@ def _static_errors_and_accuracy(
 def test_context_clusters_each_window_with_its_neighbours_and_keeps_its_own_labels():
     """window.context=1: the middle window is clustered on all 9,000 events, the outer ones
     on 6,000; each keeps the labels of its own events. In these short windows the static
-    scene's velocity is ill-determined alone (errors 0.95, 2.31, 0.15; mean accuracy 0.74)
-    and pinned down with the neighbours (0.23, 0.03, 0.31; 0.89)."""
+    scene's velocity is ill-determined alone (errors 0.91, 2.67, 1.47; mean accuracy 0.74)
+    and pinned down with the neighbours (0.08, 0.05, 0.10; 0.89)."""
     errors, accuracy, seg = _static_errors_and_accuracy("ego_street", 3000, "window.context=1")
     assert [len(i) for i in seg.indices] == [3000, 3000, 3000]
     assert [w.prepared.valid.size for w in seg.windows] == [6000, 9000, 6000]
@@ -167,11 +167,12 @@ def test_moving_camera_preset_separates_a_walking_camera_from_a_person_crossing(
     """ego_forward in three windows of 6,000 events: the defaults' image-flow start cannot
     tell the corridor's expansion from the person crossing it, while +preset=moving_camera
     (both starts, occlusion-edge events steering, context windows) finds both. Measured:
-    mean accuracy 0.74 -> 0.90; static velocity errors 1.16, 1.14, 1.15 -> 0.06, 0.43, 0.50."""
+    mean accuracy 0.74 -> 0.90; static velocity errors 1.28, 1.14, 0.54 -> 0.06, 0.39, 0.50
+    (the middle window has neighbours on both sides)."""
     errors, accuracy, _ = _static_errors_and_accuracy("ego_forward", 6000, "+preset=moving_camera")
     default_errors, default_accuracy, _ = _static_errors_and_accuracy("ego_forward", 6000)
     assert accuracy > 0.85 and accuracy > default_accuracy + 0.1
-    assert errors[1] < 0.5 < min(default_errors)
+    assert errors[1] < 0.5 < default_errors[1]
 
 
 def test_a_negative_context_is_refused(interior):
@@ -300,6 +301,9 @@ def test_p_step_sigma_pair_is_image_then_depth(interior):
         ("clustering.p_step_sigma=-1", r"p_step_sigma must be a number >= 0"),
         ("clustering.p_step_stride=6", r"a P-step stride of 6 needs a smoothing sigma"),
         ("window.context=-2", r"window\.context must be an integer >= 0, got -2"),
+        ("clustering.refit.optimizer=lbfgs", r"clustering\.refit\.optimizer: unknown optimizer"),
+        ("clustering.refit.evals=-1", r"clustering\.refit\.evals must be an integer >= 0"),
+        ("clustering.refit.radius=0", r"clustering\.refit\.radius must be a number in \(0, 1\]"),
     ],
 )
 def test_check_config_refuses_settings_a_run_would_reach_late(override, message):
@@ -320,3 +324,43 @@ def test_p_step_sigma_rejects_bad_values(interior, sigma):
     _, window = next(rec.windows())
     with pytest.raises(ValueError, match=r"p_step_sigma must be a number >= 0 or a pair"):
         segment_window(window, _with_sigma(cfg, sigma), optimizers.create("ssa_ga"), seed=0)
+
+
+def test_refit_measures_velocities_off_the_occlusion_edges():
+    """clustering.refit: with the memberships fixed, each velocity is re-fitted on the events
+    off occlusion edges only. Most edge events here move with a wrong velocity; the refit
+    recovers the true one from the rest. The memberships and the history stay the loop's;
+    evals=0 leaves the result as it was."""
+    from spatialseg.clustering import ClusteringResult, IterationRecord
+    from spatialseg.grid import grid_around
+    from spatialseg.pipeline import Prepared, refit_velocities
+
+    rng = np.random.default_rng(0)
+    n, true, wrong = 3000, np.array([1.0, 0.0, 0.0]), np.array([1.3, 0.2, 0.0])
+    t = rng.uniform(-0.5, 0.5, n)
+    anchors = rng.uniform(0.0, 2.0, size=(300, 2))[rng.integers(0, 300, n)]
+    on_edge = rng.random(n) < 0.6
+    velocity = np.where(on_edge[:, None], wrong, true)
+    points = np.column_stack([anchors, np.full(n, 3.0)]) + velocity * t[:, None]
+    grid = grid_around(points, np.array([0.025, 0.025, 0.5]), 0.1, 10**7)
+    prepared = Prepared(points, t, np.ones(n, bool), grid, 3, "m/s", None, on_edge)
+    cfg = _config()
+    bounds = np.array([[-2.0, 2.0]] * 3)
+    start = wrong[None, :]  # the loop, on every event, followed the edge events
+    loop = ClusteringResult(
+        start, np.ones((n, 1)), np.ones(1), [IterationRecord(1, np.ones(1), start, 0, 0.0)]
+    )
+    refit = refit_velocities(loop, prepared, 0.0, cfg, bounds, seed=0)
+    assert np.linalg.norm(refit.thetas[0, :2] - true[:2]) < 0.02  # vz: under a voxel here
+    reach = cfg["clustering"]["refit"]["radius"] * (bounds[:, 1] - bounds[:, 0])
+    assert np.all(np.abs(refit.thetas[0] - start[0]) <= reach + 1e-12)
+    unmarked = replace(prepared, on_edge=None)
+    stays = refit_velocities(loop, unmarked, 0.0, cfg, bounds, seed=0).thetas[0]
+    assert np.linalg.norm(stays[:2] - wrong[:2]) < 0.02
+    assert refit.probabilities is loop.probabilities
+    assert np.array_equal(refit.history[-1].thetas, start)
+    off = {
+        **cfg,
+        "clustering": {**cfg["clustering"], "refit": {"evals": 0, "optimizer": "x", "radius": 0.1}},
+    }
+    assert refit_velocities(loop, prepared, 0.0, off, bounds, seed=0) is loop
