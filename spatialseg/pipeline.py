@@ -37,6 +37,7 @@ __all__ = [
     "assign_labels",
     "check_config",
     "init_candidates",
+    "off_edge_events",
     "prepare",
     "reference_time",
     "refit_velocities",
@@ -464,6 +465,14 @@ def _full_probabilities(p: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return full
 
 
+def off_edge_events(prepared: Prepared, k: int) -> np.ndarray:
+    """Indices of the points off occlusion edges (their depth is reliable), or of every point
+    when fewer than ``k`` are off them (or no edges are marked), so each cluster has events."""
+    if prepared.on_edge is not None and np.count_nonzero(~prepared.on_edge) >= k:
+        return np.flatnonzero(~prepared.on_edge)
+    return np.arange(prepared.points.shape[0])
+
+
 def _step_subset(
     prepared: Prepared, t_ref: float, cfg: Mapping[str, Any], *, seed: int
 ) -> tuple[ModelEvaluator, np.ndarray] | None:
@@ -483,10 +492,7 @@ def _step_subset(
     if limit is not None and int(limit) < 1:
         raise ValueError(f"clustering.step_events must be >= 1 or null, got {limit}")
     n = prepared.points.shape[0]
-    pool = np.arange(n)
-    if not ccfg["step_edges"] and prepared.on_edge is not None:
-        off_edge = np.flatnonzero(~prepared.on_edge)
-        pool = off_edge if len(off_edge) >= int(cfg["n_clusters"]) else pool
+    pool = np.arange(n) if ccfg["step_edges"] else off_edge_events(prepared, int(cfg["n_clusters"]))
     if len(pool) == n and (limit is None or n <= int(limit)):
         return None
     if limit is not None and len(pool) > int(limit):
@@ -652,17 +658,13 @@ def refit_velocities(
     budget = _refit_budget(cfg)
     if budget == 0:
         return result
-    k = result.thetas.shape[0]
-    index = np.arange(prepared.points.shape[0])
-    if prepared.on_edge is not None and np.count_nonzero(~prepared.on_edge) >= k:
-        index = np.flatnonzero(~prepared.on_edge)
+    rcfg = cfg["clustering"]["refit"]
+    index = off_edge_events(prepared, result.thetas.shape[0])
     evaluator = window_objective(prepared, t_ref, cfg, index)
-    optimizer = named_optimizer(
-        str(cfg["clustering"]["refit"]["optimizer"]), "clustering.refit.optimizer"
-    )
-    reach = float(cfg["clustering"]["refit"]["radius"]) * (bounds[:, 1] - bounds[:, 0])
+    optimizer = named_optimizer(str(rcfg["optimizer"]), "clustering.refit.optimizer")
+    reach = float(rcfg["radius"]) * (bounds[:, 1] - bounds[:, 0])
     thetas = result.thetas.copy()
-    for j in range(k):
+    for j in range(thetas.shape[0]):
         evaluator.set_weights(result.probabilities[index, j])
         near = np.column_stack(
             [

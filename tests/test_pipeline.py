@@ -328,9 +328,10 @@ def test_p_step_sigma_rejects_bad_values(interior, sigma):
 
 def test_refit_measures_velocities_off_the_occlusion_edges():
     """clustering.refit: with the memberships fixed, each velocity is re-fitted on the events
-    off occlusion edges only. Most edge events here move with a wrong velocity; the refit
-    recovers the true one from the rest. The memberships and the history stay the loop's;
-    evals=0 leaves the result as it was."""
+    off occlusion edges only. Most edge events here move with a wrong velocity, where the
+    loop ended; the refit recovers the true one from the rest (with no edges marked it
+    stays), within its radius. The memberships and the history stay the loop's; evals=0
+    leaves the result as it was."""
     from spatialseg.clustering import ClusteringResult, IterationRecord
     from spatialseg.grid import grid_around
     from spatialseg.pipeline import Prepared, refit_velocities
