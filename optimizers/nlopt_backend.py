@@ -43,6 +43,9 @@ def _nlopt_exceptions(*names: str) -> tuple[type[BaseException], ...]:
 
 #: Exceptions NLopt raises for a run that stopped on rounding errors (a normal stop).
 _ROUNDOFF = _nlopt_exceptions("RoundoffLimited", "roundoff_limited")
+#: NLopt's generic failure (NLOPT_FAILURE); L-BFGS raises it when its line search gives up,
+#: as it does at a kink of a non-smooth objective (stevengj/nlopt#40).
+_FAILURE = _nlopt_exceptions("runtime_error")
 #: Exceptions NLopt raises for arguments it rejects (older versions raise ValueError).
 _INVALID = (ValueError, *_nlopt_exceptions("invalid_argument"))
 
@@ -186,6 +189,11 @@ class NLopt(Optimizer):
                     reason = "stopped by NLopt: roundoff limited"
                 elif gave_infinity:
                     reason = "stopped by NLopt: it failed after fun returned only non-finite values"
+                elif isinstance(exc, _FAILURE) and np.isfinite(lowest):
+                    reason = (
+                        "stopped by NLopt: generic failure (a gradient method's line search "
+                        "gave up, e.g. on a non-smooth objective); the best point so far is kept"
+                    )
                 else:
                     raise _translate(exc, hp.algorithm) from exc
             else:

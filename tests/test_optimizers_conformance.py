@@ -497,6 +497,24 @@ def test_wrong_shaped_outputs_raise():
         )
 
 
+def test_nlopt_generic_failure_after_progress_keeps_the_best_point():
+    """L-BFGS's line search gives up at the kinks of an L1 objective (NLopt's generic
+    failure): the run ends with its best point and a message saying so, instead of raising
+    away the evaluations made (scipy's L-BFGS-B returns ABNORMAL_TERMINATION likewise)."""
+    centre = np.array([0.3, -0.7, 0.5])
+    nlopt_lbfgs = optimizers.create("nlopt", algorithm="LD_LBFGS", xtol_rel=0.0, restart=False)
+    res = nlopt_lbfgs.maximize(
+        lambda x: -float(np.abs(x - centre).sum()),
+        [(-2, 2)] * 3,
+        x0=np.zeros(3),
+        grad=lambda x: -np.sign(x - centre),
+        max_evals=300,
+    )
+    assert "generic failure" in res.message
+    assert res.n_evals < 300  # it stopped early, on the failure
+    assert res.value > -float(np.abs(centre).sum())  # better than the start
+
+
 def test_nlopt_rejection_becomes_a_clear_value_error():
     opt = optimizers.create("nlopt", algorithm="LD_LBFGS_NOCEDAL")
     with pytest.raises(ValueError, match="NLopt rejected LD_LBFGS_NOCEDAL"):
