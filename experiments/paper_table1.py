@@ -61,6 +61,7 @@ from spatialseg.clustering import initial_memberships
 from spatialseg.objectives import make_objective
 from spatialseg.pipeline import (
     ModelEvaluator,
+    depth_change_cap,
     initialise,
     prepare,
     reference_time,
@@ -141,7 +142,7 @@ def run_scene_seed(
     window = next(iter(rec.windows()))[1]
     prepared = prepare(window, cfg)
     ccfg = cfg["clustering"]
-    bounds = search_bounds(prepared, float(ccfg["max_displacement"]))
+    bounds = search_bounds(prepared, float(ccfg["max_displacement"]), depth_change_cap(ccfg))
     init = initialise(window, prepared, cfg, N_FLOWS, bounds, seed=seed)
     p = initial_memberships(
         prepared.points,

@@ -36,6 +36,7 @@ __all__ = [
     "WindowResult",
     "assign_labels",
     "check_config",
+    "depth_change_cap",
     "init_candidates",
     "off_edge_events",
     "prepare",
@@ -334,6 +335,19 @@ def check_config(cfg: Mapping[str, Any]) -> None:
     sigmas = p_step_sigmas(cfg["clustering"]["p_step_sigma"])
     check_p_step_blur(sigmas[0], int(cfg["clustering"]["p_step_stride"]), sigmas)
     check_window_context(cfg["window"]["context"])
+    depth_change_cap(cfg["clustering"])
+
+
+def depth_change_cap(ccfg: Mapping[str, Any]) -> float | None:
+    """``clustering.max_depth_change``, validated: a positive number, or None for no cap."""
+    value = ccfg["max_depth_change"]
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+        raise ValueError(
+            f"clustering.max_depth_change must be a positive number or null, got {value!r}"
+        )
+    return float(value)
 
 
 def init_candidates(init_cfg: Mapping[str, Any]) -> list[str]:
@@ -424,16 +438,29 @@ def _search_extent(all_points: np.ndarray, grid: VoxelGrid, margin: float) -> np
     return np.maximum(np.asarray(grid.shape, float) * grid.voxel_size, span)
 
 
-def search_bounds(prepared: Prepared, max_displacement: float) -> np.ndarray:
+def search_bounds(
+    prepared: Prepared, max_displacement: float, max_depth_change: float | None = None
+) -> np.ndarray:
     """Velocity box: a motion may move a point at most ``max_displacement`` times the grid's
     extent (``prepared.search_extent`` when set) along each axis over the window (dim x 2,
-    centred on zero)."""
+    centred on zero); with ``max_depth_change`` (spatial model) ``|vz|`` is also capped so a
+    motion changes the points' median depth by at most that share over the window.
+
+    Decision: the depth cap is a time to contact of at least ``1 / max_depth_change``
+    windows. Without it a few far outliers in the depth maps stretch the depth extent (to
+    hundreds of metres on ``road_cars``) and the box admits velocities that push half the
+    window's events far away and pull the other half close: event collapse, which the
+    variance rewards (docs/method.md, "Event collapse").
+    """
     if prepared.search_extent is not None:
         extent = np.asarray(prepared.search_extent, float)
     else:
         extent = np.asarray(prepared.grid.shape, float) * prepared.grid.voxel_size
     duration = max(float(prepared.t.max() - prepared.t.min()), 1e-9)
     half = max_displacement * extent[: prepared.dim] / duration
+    if max_depth_change is not None and prepared.dim == 3:
+        depth = float(np.median(prepared.points[:, 2]))
+        half[2] = min(half[2], max_depth_change * depth / duration)
     return np.column_stack([-half, half])
 
 
@@ -701,7 +728,8 @@ def segment_window(
         )
     t_ref = reference_time(prepared.t, cfg["volume"]["t_ref"])
     timings["prepare"] = time.perf_counter() - start
-    bounds = search_bounds(prepared, float(cfg["clustering"]["max_displacement"]))
+    ccfg = cfg["clustering"]
+    bounds = search_bounds(prepared, float(ccfg["max_displacement"]), depth_change_cap(ccfg))
     objectives: tuple[ModelEvaluator, tuple[StepStage, ...]] | None = None
     kept: tuple[ClusteringResult, motion_init.InitResult, str] | None = None
     timings["init"] = timings["cluster"] = 0.0

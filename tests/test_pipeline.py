@@ -203,6 +203,35 @@ def test_approaching_box_contrast_peaks_at_its_depth_velocity():
     assert volume.value(truth) > 1.5 * volume.value(lateral_only)
 
 
+def test_the_depth_change_cap_bounds_vz_by_the_median_depth_not_by_outliers():
+    """clustering.max_depth_change: a few far outliers in the depth (as in real depth maps)
+    stretch the depth extent and so the box's vz; the cap limits |vz| to that share of the
+    median depth per window, and leaves the box as it was where it is already narrower."""
+    from spatialseg.grid import grid_around
+    from spatialseg.pipeline import Prepared
+
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(-1, 1, (1000, 2)), rng.uniform(2.0, 4.0, 1000)])
+    points[:5, 2] = 600.0  # far outliers
+    t = rng.uniform(0.0, 0.5, 1000)
+    grid = grid_around(points[5:], np.array([0.05, 0.05, 0.1]), 0.1, 10**7)
+    extent = points.max(axis=0) - points.min(axis=0)
+    prepared = Prepared(points, t, np.ones(1000, bool), grid, 3, "m/s", extent)
+    duration = float(t.max() - t.min())
+    uncapped = search_bounds(prepared, 0.15)
+    assert uncapped[2, 1] == pytest.approx(0.15 * extent[2] / duration)  # ~180 m/s
+    capped = search_bounds(prepared, 0.15, 0.5)
+    assert capped[2, 1] == pytest.approx(0.5 * np.median(points[:, 2]) / duration)
+    np.testing.assert_array_equal(capped[:2], uncapped[:2])
+    assert np.array_equal(search_bounds(prepared, 0.15, 1e6), uncapped)
+
+
+@pytest.mark.parametrize("value", [0, -1.0, "far", True])
+def test_a_bad_depth_change_cap_is_refused_before_the_run(value):
+    with pytest.raises(ValueError, match="max_depth_change must be a positive"):
+        check_config(_config(f"clustering.max_depth_change={value}"))
+
+
 def test_moving_camera_static_scene_is_one_motion():
     """ego_street (camera translating past layers from 1.6 to 8 m, a cyclist overtaking): the
     spatial model finds the static scene as one motion; the planar one cannot (measured at
