@@ -110,12 +110,17 @@ def scene_figure(scene: str, job: dict[str, Any]) -> Any:
     labels = np.load(run_dir / "labels.npy")
     cfg = compose_config(*job["overrides"])
     recording = load_scene(
-        cfg["scene"], seed=int(cfg["seed"]), window_events=int(cfg["window"]["events"])
+        cfg["scene"],
+        seed=int(cfg["seed"]),
+        window_events=int(cfg["window"]["events"]),
+        windows=int(cfg["window"]["count"]),
     )
-    # The run's own preparation (denoising, depth source), so labels.npy lines up.
+    # The run's own preparation (denoising, depth source), so labels.npy lines up, and its
+    # first window's span (the window with its window.context neighbours), as clustered.
     recording = prepare_recording(recording, cfg)
-    index, window = next(iter(recording.windows()))
-    prepared = prepare(window, cfg)
+    index, span, inner = next(iter(recording.spans(int(cfg["window"]["context"]))))
+    window = span.select(inner)
+    prepared = prepare(span, cfg)
     first = result["windows"][0]
     if list(prepared.grid.shape) != list(first["grid_shape"]):
         raise FigureError(

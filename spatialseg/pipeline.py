@@ -39,6 +39,7 @@ __all__ = [
     "depth_change_cap",
     "init_candidates",
     "off_edge_events",
+    "p_step_settings",
     "prepare",
     "reference_time",
     "refit_velocities",
@@ -332,8 +333,8 @@ def check_config(cfg: Mapping[str, Any]) -> None:
         str(cfg["clustering"]["refit"]["optimizer"]), "clustering.refit.optimizer"
     )
     _refit_budget(cfg)
-    sigmas = p_step_sigmas(cfg["clustering"]["p_step_sigma"])
-    check_p_step_blur(sigmas[0], int(cfg["clustering"]["p_step_stride"]), sigmas)
+    p_step_settings(cfg["clustering"], alone=False)
+    p_step_settings(cfg["clustering"], alone=True)
     check_window_context(cfg["window"]["context"])
     depth_change_cap(cfg["clustering"])
 
@@ -581,9 +582,9 @@ def window_objective(
     return ModelEvaluator(volume, prepared.dim)
 
 
-def p_step_sigmas(value: Any) -> tuple[float, float, float]:
-    """``clustering.p_step_sigma`` as (x, y, depth) voxels: one number for every axis, or a
-    pair ``[image, depth]`` (x and y share the first)."""
+def p_step_sigmas(value: Any, key: str = "clustering.p_step_sigma") -> tuple[float, float, float]:
+    """``clustering.p_step_sigma`` (or the setting ``key``) as (x, y, depth) voxels: one number
+    for every axis, or a pair ``[image, depth]`` (x and y share the first)."""
     if isinstance(value, int | float) and not isinstance(value, bool):
         parts = [value]
     elif isinstance(value, Sequence) and not isinstance(value, str):
@@ -594,10 +595,33 @@ def p_step_sigmas(value: Any) -> tuple[float, float, float]:
     sigmas = [float(v) for v in parts] if numbers else []
     if len(sigmas) not in (1, 2) or not all(np.isfinite(v) and v >= 0 for v in sigmas):
         raise ValueError(
-            f"clustering.p_step_sigma must be a number >= 0 or a pair [image, depth] of them "
-            f"(voxels), got {value!r}"
+            f"{key} must be a number >= 0 or a pair [image, depth] of them (voxels), got {value!r}"
         )
     return (sigmas[0], sigmas[0], sigmas[-1])
+
+
+def p_step_settings(
+    ccfg: Mapping[str, Any], *, alone: bool
+) -> tuple[tuple[float, float, float], int]:
+    """The P-step's smoothing (x, y, depth voxels) and grid stride, checked:
+    ``clustering.p_step_sigma`` and ``p_step_stride`` for a window clustered with neighbouring
+    windows, ``clustering.p_step_alone`` for one clustered alone.
+
+    Decision: a window alone holds a third of a three-window span's events, and its volumes
+    want the wider blur; the span wants the narrower one, which keeps the static scene's
+    cluster off the events around a moving object (docs/method.md, "Defaults for a moving
+    camera")."""
+    if alone:
+        given, stride = ccfg["p_step_alone"]["sigma"], ccfg["p_step_alone"]["stride"]
+        keys = ("clustering.p_step_alone.sigma", "clustering.p_step_alone.stride")
+    else:
+        given, stride = ccfg["p_step_sigma"], ccfg["p_step_stride"]
+        keys = ("clustering.p_step_sigma", "clustering.p_step_stride")
+    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+        raise ValueError(f"{keys[1]} must be an integer >= 1, got {stride!r}")
+    sigmas = p_step_sigmas(given, keys[0])
+    check_p_step_blur(sigmas[0], stride, given, keys)
+    return sigmas, stride
 
 
 def _rules(ccfg: Mapping[str, Any]) -> ConvergenceRules:
@@ -621,9 +645,12 @@ def _cluster_from(
     *,
     seed: int,
     on_iteration: Any,
+    alone: bool,
 ) -> ClusteringResult:
-    """Algorithm 1 from one start: its memberships, then the configured loop."""
+    """Algorithm 1 from one start: its memberships, then the configured loop (``alone``: the
+    window has no neighbouring windows, :func:`p_step_settings`)."""
     ccfg = cfg["clustering"]
+    sigmas, stride = p_step_settings(ccfg, alone=alone)
     init_p = initial_memberships(
         prepared.grid.coordinates(prepared.points),
         prepared.grid.voxel_size,
@@ -641,8 +668,8 @@ def _cluster_from(
         bounds,
         rules=_rules(ccfg),
         evals_per_step=int(ccfg["evals_per_step"]),
-        p_step_sigma=p_step_sigmas(ccfg["p_step_sigma"]),
-        p_step_stride=int(ccfg["p_step_stride"]),
+        p_step_sigma=sigmas,
+        p_step_stride=stride,
         seed=seed,
         on_iteration=on_iteration,
         stages=stages,
@@ -744,7 +771,15 @@ def segment_window(
             stages = _step_stages(prepared, t_ref, cfg, optimizer, evaluator, seed=seed)
             objectives = (evaluator, stages)
         result = _cluster_from(
-            init, prepared, objectives, cfg, optimizer, bounds, seed=seed, on_iteration=on_iteration
+            init,
+            prepared,
+            objectives,
+            cfg,
+            optimizer,
+            bounds,
+            seed=seed,
+            on_iteration=on_iteration,
+            alone=len(window.depth_maps) == 2,
         )
         timings["cluster"] += time.perf_counter() - start
         if len(starts) > 1:

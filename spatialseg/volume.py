@@ -339,15 +339,21 @@ def _finite_array(
     return arr.astype(dtype, copy=False)
 
 
-def check_p_step_blur(sigma_xy: float, stride: int, given: object) -> None:
+def check_p_step_blur(
+    sigma_xy: float,
+    stride: int,
+    given: object,
+    keys: tuple[str, str] = ("clustering.p_step_sigma", "clustering.p_step_stride"),
+) -> None:
     """Raise unless a P-step grid ``stride`` times coarser in x and y fits in a smoothing of
     ``sigma_xy`` voxels there: its voting and sampling tents alone blur by
-    ``(stride^2 - 1) / 3`` voxels squared (``given``: the setting, for the message)."""
+    ``(stride^2 - 1) / 3`` voxels squared (``given`` and ``keys``: the settings, for the
+    message)."""
     if sigma_xy**2 < (stride**2 - 1) / 3:
         raise ValueError(
             f"a P-step stride of {stride} needs a smoothing sigma of at least "
             f"{np.sqrt((stride**2 - 1) / 3):.2f} voxels in x and y, got {given}; lower "
-            "clustering.p_step_stride or raise clustering.p_step_sigma"
+            f"{keys[1]} or raise {keys[0]}"
         )
 
 

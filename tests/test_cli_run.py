@@ -36,14 +36,18 @@ def test_simulated_scene_run_writes_all_outputs(tmp_path):
     result = json.loads((out / "result.json").read_text())
     labels = np.load(out / "labels.npy")
     probs = np.load(out / "probabilities.npy")
-    assert labels.shape == (4000,) and probs.shape == (4000, 2) and probs.dtype == np.float32
+    # window.count=3: three 4,000-event windows, each clustered with its neighbours
+    assert labels.shape == (12000,) and probs.shape == (12000, 2) and probs.dtype == np.float32
+    assert len(result["windows"]) == 3
     assert set(np.unique(labels)) <= {-1, 0, 1}
     assert [c["id"] for c in result["clusters"]] == [0, 1]
     assert all(len(c["theta"]) == 3 and np.isfinite(c["variance"]) for c in result["clusters"])
     assert result["metrics"]["accuracy"] > 0.9
     assert {"load", "segment", "total"} <= set(result["timings"])
-    for png in ("clusters.png", "warped_volumes.png", "variance.png", "theta.png"):
-        assert (out / png).stat().st_size > 1000
+    assert (out / "clusters.png").stat().st_size > 1000
+    for w in range(3):  # per window, suffixed
+        for png in ("clusters", "warped_volumes", "variance", "theta"):
+            assert (out / f"{png}_w{w}.png").stat().st_size > 1000
     assert "cluster 0" in res.stderr + res.stdout
 
 

@@ -131,10 +131,12 @@ def test_theta_step_on_a_subset_labels_every_event():
     assert last.per_cluster[0] == pytest.approx(full.value(last.thetas[0]), rel=1e-9)
 
 
-def test_fast_preset_composes_onto_the_defaults():
-    """+preset=fast changes only the stopping rule."""
+def test_fast_preset_is_one_window_with_an_earlier_stop():
+    """+preset=fast is +preset=one_window with only the stopping rule changed."""
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-        base = OmegaConf.to_container(compose("config", overrides=["+scene=interior"]))
+        base = OmegaConf.to_container(
+            compose("config", overrides=["+scene=interior", "+preset=one_window"])
+        )
         fast = OmegaConf.to_container(
             compose("config", overrides=["+scene=interior", "+preset=fast"])
         )
@@ -146,12 +148,15 @@ def test_fast_preset_composes_onto_the_defaults():
     }
 
 
-def test_moving_camera_preset_tries_both_starts_with_context_and_edge_events():
+def test_one_window_preset_clusters_each_window_alone_from_the_flow_start():
+    """+preset=one_window: the image-flow start alone, no neighbouring windows (so the
+    P-step takes clustering.p_step_alone), edge events out of the theta-step, one window."""
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-        cfg = compose("config", overrides=["+scene=ego_street", "+preset=moving_camera"])
-    assert cfg.init.method == "auto" and list(cfg.clustering.p_step_sigma) == [1.5, 1.0]
-    assert cfg.clustering.p_step_stride == 1
-    assert cfg.clustering.step_edges is True and cfg.window.context == 1 and cfg.window.count == 3
+        base = compose("config", overrides=["+scene=ego_street"])
+        cfg = compose("config", overrides=["+scene=ego_street", "+preset=one_window"])
+    assert base.init.method == "auto" and base.window.context == 1 and base.window.count == 3
+    assert cfg.init.method == "image_flow" and cfg.clustering.step_edges is False
+    assert cfg.window.context == 0 and cfg.window.count == 1
 
 
 def test_coarse_to_fine_theta_step():

@@ -47,9 +47,13 @@ def test_single_run_is_one_mlflow_run(tmp_path):
     assert run.data.metrics["iterations"] == result["iterations"]
     assert run.data.metrics["accuracy"] == pytest.approx(result["metrics"]["accuracy"])
     client = MlflowClient(f"sqlite:///{db}")
-    history = client.get_metric_history(run.info.run_id, "iter/variance_total")
-    assert [m.step for m in history] == list(range(1, result["iterations"] + 1))
-    assert len(client.get_metric_history(run.info.run_id, "iter/theta1_z")) == len(history)
+    assert len(result["windows"]) == 3  # window.count=3: each window's curves by its prefix
+    for i, window in enumerate(result["windows"]):
+        history = client.get_metric_history(run.info.run_id, f"window{i}/iter/variance_total")
+        assert [m.value for m in history] == pytest.approx(window["history"]["total"])
+        assert [m.step for m in history] == list(range(1, len(history) + 1))
+        thetas = client.get_metric_history(run.info.run_id, f"window{i}/iter/theta1_z")
+        assert len(thetas) == len(history)
     artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
     assert {"result.json", "labels.npy", "config.yaml"} <= artifacts
 
