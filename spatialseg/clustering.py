@@ -32,6 +32,7 @@ __all__ = [
     "initial_memberships",
     "iterative_clustering",
     "maximize_contrast",
+    "p_step",
     "update_memberships",
 ]
 
@@ -221,6 +222,18 @@ class StepStage:
     optimizer: Maximizer
     budget: int
     subset: np.ndarray | slice = field(default_factory=lambda: slice(None))
+
+
+def p_step(
+    evaluator: ClusterEvaluator,
+    thetas: np.ndarray,
+    p: np.ndarray,
+    sigma: float | Sequence[float],
+    stride: int,
+) -> np.ndarray:
+    """One P-step (Eq. 26) outside the loop: the memberships the volumes of ``thetas``,
+    weighted by ``p`` and smoothed by ``sigma`` voxels, give each event (N x K)."""
+    return update_memberships(_responses(evaluator, thetas, p, sigma, stride)[0])
 
 
 def _responses(

@@ -24,6 +24,7 @@ from spatialseg.clustering import (
     initial_memberships,
     iterative_clustering,
     maximize_contrast,
+    p_step,
 )
 from spatialseg.grid import VoxelGrid, grid_around, project_jacobian
 from spatialseg.objectives import make_objective
@@ -337,6 +338,22 @@ def check_config(cfg: Mapping[str, Any]) -> None:
     p_step_settings(cfg["clustering"], alone=True)
     check_window_context(cfg["window"]["context"])
     depth_change_cap(cfg["clustering"])
+    relabel_sigmas(cfg["clustering"], alone=False)
+    relabel_sigmas(cfg["clustering"], alone=True)
+
+
+def relabel_sigmas(ccfg: Mapping[str, Any], *, alone: bool) -> tuple[float, float, float] | None:
+    """``clustering.relabel_sigma`` (``clustering.p_step_alone.relabel_sigma`` for a window
+    clustered alone) as (x, y, depth) voxels, or None (off), validated.
+
+    Decision: once the velocities are final (after the refit), one more P-step at them,
+    smoothed less than the loop's, gives the labels. The loop needs its wider blur while
+    velocities and memberships still move; at the final velocities a sharper response
+    follows an object's outline more closely. A window alone holds a third of the events
+    per voxel, and there it cost accuracy (docs/method.md, "Relabelling")."""
+    key = "clustering.p_step_alone.relabel_sigma" if alone else "clustering.relabel_sigma"
+    value = ccfg["p_step_alone"]["relabel_sigma"] if alone else ccfg["relabel_sigma"]
+    return None if value is None else p_step_sigmas(value, key)
 
 
 def depth_change_cap(ccfg: Mapping[str, Any]) -> float | None:
@@ -745,6 +762,7 @@ def segment_window(
     if k < 1:
         raise ValueError(f"n_clusters={k}: need at least one cluster")
     starts = init_candidates(cfg["init"])
+    alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
     timings: dict[str, float] = {}
     start = time.perf_counter()
     prepared = prepare(window, cfg)
@@ -779,18 +797,24 @@ def segment_window(
             bounds,
             seed=seed,
             on_iteration=on_iteration,
-            alone=len(window.depth_maps) == 2,
+            alone=alone,
         )
         timings["cluster"] += time.perf_counter() - start
         if len(starts) > 1:
             log.info("start %s: total contrast %.6g", method, float(np.sum(result.values)))
         if kept is None or np.sum(result.values) > np.sum(kept[0].values):
             kept = (result, init, method)
-    assert kept is not None  # init_candidates names at least one start
+    assert kept is not None and objectives is not None  # init_candidates names a start
     result, init, method = kept
     start = time.perf_counter()
     result = refit_velocities(result, prepared, t_ref, cfg, bounds, seed=seed)
     timings["refit"] = time.perf_counter() - start
+    sigmas = relabel_sigmas(cfg["clustering"], alone=alone)
+    if sigmas is not None:
+        start = time.perf_counter()
+        relabelled = p_step(objectives[0], result.thetas, result.probabilities, sigmas, 1)
+        result = replace(result, probabilities=relabelled)
+        timings["relabel"] = time.perf_counter() - start
     labels = assign_labels(
         result.probabilities, prepared.valid, float(cfg["clustering"]["min_probability"])
     )

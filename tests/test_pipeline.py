@@ -439,3 +439,47 @@ def test_the_moving_camera_preset_is_the_defaults():
     """+preset=moving_camera (sessions 9-10) became the defaults; the name still composes,
     to the same configuration."""
     assert _config("+preset=moving_camera") == _config()
+
+
+def test_relabelling_is_one_p_step_at_the_final_velocities(interior):
+    """The labels come from one more P-step at the final (refitted) velocities, weighted by
+    the loop's memberships and smoothed by the relabel sigma; null keeps the loop's
+    memberships, and the velocities are the same either way. This window is clustered
+    alone, so clustering.p_step_alone.relabel_sigma is the one that counts."""
+    from spatialseg.clustering import p_step
+    from spatialseg.pipeline import window_objective
+
+    cfg, rec = interior
+    _, window = next(rec.windows())
+
+    def relabel(top, alone):
+        ccfg = cfg["clustering"]
+        return {
+            **cfg,
+            "clustering": {
+                **ccfg,
+                "relabel_sigma": top,
+                "p_step_alone": {**ccfg["p_step_alone"], "relabel_sigma": alone},
+            },
+        }
+
+    def run(top, alone):
+        return segment_window(window, relabel(top, alone), optimizers.create("ssa_ga"), seed=0)
+
+    loop, top_only, on = run(None, None), run([1.0, 0.5], None), run(None, [1.0, 0.5])
+    assert "relabel" not in loop.timings and "relabel" not in top_only.timings
+    assert np.array_equal(loop.labels, top_only.labels)
+    assert np.array_equal(loop.clustering.thetas, on.clustering.thetas)
+    evaluator = window_objective(loop.prepared, loop.t_ref, cfg)
+    thetas, p = loop.clustering.thetas, loop.clustering.probabilities
+    expected = p_step(evaluator, thetas, p, (1.0, 1.0, 0.5), 1)
+    np.testing.assert_allclose(on.clustering.probabilities, expected, atol=1e-12)
+    assert not np.allclose(expected, p)  # the relabelling changed the memberships
+    assert "relabel" in on.timings
+
+
+@pytest.mark.parametrize("value", ["-1.0", "[1.0,2.0,3.0]", "sharp"])
+@pytest.mark.parametrize("key", ["relabel_sigma", "p_step_alone.relabel_sigma"])
+def test_a_bad_relabel_sigma_is_refused_before_the_run(value, key):
+    with pytest.raises(ValueError, match=rf"clustering\.{key} must be a number >= 0"):
+        check_config(_config(f"clustering.{key}={value}"))
