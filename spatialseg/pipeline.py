@@ -351,8 +351,7 @@ def relabel_sigmas(ccfg: Mapping[str, Any], *, alone: bool) -> tuple[float, floa
     velocities and memberships still move; at the final velocities a sharper response
     follows an object's outline more closely. A window alone holds a third of the events
     per voxel, and there it cost accuracy (docs/method.md, "Relabelling")."""
-    key = "clustering.p_step_alone.relabel_sigma" if alone else "clustering.relabel_sigma"
-    value = ccfg["p_step_alone"]["relabel_sigma"] if alone else ccfg["relabel_sigma"]
+    value, key = _p_step_option(ccfg, "relabel_sigma", alone=alone)
     return None if value is None else p_step_sigmas(value, key)
 
 
@@ -628,17 +627,22 @@ def p_step_settings(
     want the wider blur; the span wants the narrower one, which keeps the static scene's
     cluster off the events around a moving object (docs/method.md, "Defaults for a moving
     camera")."""
-    if alone:
-        given, stride = ccfg["p_step_alone"]["sigma"], ccfg["p_step_alone"]["stride"]
-        keys = ("clustering.p_step_alone.sigma", "clustering.p_step_alone.stride")
-    else:
-        given, stride = ccfg["p_step_sigma"], ccfg["p_step_stride"]
-        keys = ("clustering.p_step_sigma", "clustering.p_step_stride")
+    given, sigma_key = _p_step_option(ccfg, "sigma", alone=alone)
+    stride, stride_key = _p_step_option(ccfg, "stride", alone=alone)
     if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
-        raise ValueError(f"{keys[1]} must be an integer >= 1, got {stride!r}")
-    sigmas = p_step_sigmas(given, keys[0])
-    check_p_step_blur(sigmas[0], stride, given, keys)
+        raise ValueError(f"{stride_key} must be an integer >= 1, got {stride!r}")
+    sigmas = p_step_sigmas(given, sigma_key)
+    check_p_step_blur(sigmas[0], stride, given, (sigma_key, stride_key))
     return sigmas, stride
+
+
+def _p_step_option(ccfg: Mapping[str, Any], name: str, *, alone: bool) -> tuple[Any, str]:
+    """The P-step setting ``name`` (``sigma``, ``stride`` or ``relabel_sigma``) and its key:
+    ``clustering.p_step_alone.NAME`` for a window clustered alone, else the top-level one."""
+    if alone:
+        return ccfg["p_step_alone"][name], f"clustering.p_step_alone.{name}"
+    top = {"sigma": "p_step_sigma", "stride": "p_step_stride"}.get(name, name)
+    return ccfg[top], f"clustering.{top}"
 
 
 def _rules(ccfg: Mapping[str, Any]) -> ConvergenceRules:
