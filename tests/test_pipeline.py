@@ -483,3 +483,17 @@ def test_relabelling_is_one_p_step_at_the_final_velocities(interior):
 def test_a_bad_relabel_sigma_is_refused_before_the_run(value, key):
     with pytest.raises(ValueError, match=rf"clustering\.{key} must be a number >= 0"):
         check_config(_config(f"clustering.{key}={value}"))
+
+
+def test_windows_with_neighbours_take_the_top_level_relabel_sigma():
+    """A window clustered with its neighbours (window.context=1) is relabelled by
+    clustering.relabel_sigma, whatever p_step_alone says; null there turns it off."""
+    cfg = _config("window.events=1500", "window.context=1")
+    rec = load_scene(cfg["scene"], seed=0, window_events=1500, windows=3)
+    ccfg = cfg["clustering"]
+    alone_on = {**ccfg["p_step_alone"], "relabel_sigma": [1.0, 1.0]}
+    for top, relabelled in (([1.0, 1.0], True), (None, False)):
+        run_cfg = {**cfg, "clustering": {**ccfg, "relabel_sigma": top, "p_step_alone": alone_on}}
+        seg = segment_recording(rec, run_cfg, optimizers.create("ssa_ga"), seed=0)
+        assert len(seg.windows) == 3
+        assert all(("relabel" in w.timings) == relabelled for w in seg.windows)
