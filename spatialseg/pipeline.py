@@ -42,6 +42,7 @@ __all__ = [
     "off_edge_events",
     "p_step_settings",
     "prepare",
+    "previous_init",
     "reference_time",
     "refit_velocities",
     "search_bounds",
@@ -55,6 +56,10 @@ log = logging.getLogger(__name__)
 
 #: init.method choices that compute one start (``auto`` tries several of them).
 INIT_METHODS = ("tiles", "image_flow", "time_surface")
+
+#: The start ``init.auto`` may add: the preceding window's final velocities (windows after
+#: a recording's first; :func:`segment_recording`).
+PREVIOUS = "previous"
 
 
 @dataclass(frozen=True, eq=False)
@@ -370,7 +375,8 @@ def depth_change_cap(ccfg: Mapping[str, Any]) -> float | None:
 
 def init_candidates(init_cfg: Mapping[str, Any]) -> list[str]:
     """The starts a window is clustered from: ``init.method``, or for ``auto`` each of
-    ``init.auto`` (:func:`segment_window` keeps the result with the highest total contrast).
+    ``init.auto`` (:func:`segment_window` keeps the result with the highest total contrast;
+    ``previous`` runs only where a preceding window has been segmented).
 
     Decision: the flow start fails where per-event flows do not separate the motions (a
     camera walking forward, ``ego_forward``), the tile start where a tile cannot tell motion
@@ -384,8 +390,12 @@ def init_candidates(init_cfg: Mapping[str, Any]) -> list[str]:
         _check_init_method(method)
         return [method]
     names = list(init_cfg["auto"] or [])
-    if not names or any(n not in INIT_METHODS for n in names):
-        raise ValueError(f"init.auto must list one or more of {INIT_METHODS}, got {names!r}")
+    known = (*INIT_METHODS, PREVIOUS)
+    if not any(n in INIT_METHODS for n in names) or any(n not in known for n in names):
+        raise ValueError(
+            f"init.auto must list one or more of {INIT_METHODS}, and optionally "
+            f"{PREVIOUS!r} (a recording's first window has no previous one), got {names!r}"
+        )
     return names
 
 
@@ -752,6 +762,47 @@ def refit_velocities(
     return replace(result, thetas=thetas)
 
 
+def _window_objectives(
+    prepared: Prepared, t_ref: float, cfg: Mapping[str, Any], optimizer: Any, *, seed: int
+) -> tuple[ModelEvaluator, tuple[StepStage, ...]]:
+    """The P-step's evaluator over every event and the theta-step's stages, shared by the
+    window's starts."""
+    evaluator = window_objective(prepared, t_ref, cfg)
+    return evaluator, _step_stages(prepared, t_ref, cfg, optimizer, evaluator, seed=seed)
+
+
+def previous_init(
+    previous: np.ndarray,
+    prepared: Prepared,
+    evaluator: ModelEvaluator,
+    ccfg: Mapping[str, Any],
+    bounds: np.ndarray,
+    *,
+    alone: bool,
+) -> motion_init.InitResult:
+    """The ``previous`` start: the preceding window's final velocities (K x the model's
+    components, clipped into this window's search box), each event labelled by one P-step
+    at them from uniform memberships.
+
+    Decision: motions change little from one window to the next, and a start that already
+    holds every motion keeps a small object that the window's own starts both lose
+    (docs/method.md, "The previous window's velocities").
+    """
+    previous = np.asarray(previous, dtype=np.float64)
+    if previous.ndim != 2 or previous.shape[1] < prepared.dim or not np.isfinite(previous).all():
+        raise ValueError(
+            f"previous velocities must be finite, K x {prepared.dim}; got shape {previous.shape}"
+        )
+    k = len(previous)
+    thetas = np.clip(previous[:, : prepared.dim], bounds[:, 0], bounds[:, 1])
+    sigmas, stride = p_step_settings(ccfg, alone=alone)
+    uniform = np.full((prepared.points.shape[0], k), 1.0 / k)
+    labels = np.argmax(p_step(evaluator, thetas, uniform, sigmas, stride), axis=1)
+    full = np.zeros((k, 3))
+    full[:, : prepared.dim] = thetas
+    return motion_init.InitResult(full, np.full((len(labels), 3), np.nan), 0, False, labels)
+
+
 def segment_window(
     window: Recording,
     cfg: Mapping[str, Any],
@@ -759,14 +810,16 @@ def segment_window(
     *,
     seed: int,
     on_iteration: Any = None,
+    previous: np.ndarray | None = None,
 ) -> WindowResult:
     """Segment one window (two depth maps) into ``cfg['n_clusters']`` motions; with
     ``init.method=auto``, from each start of ``init.auto``, keeping the highest total
-    contrast."""
+    contrast. ``previous`` (K x the model's components): the preceding window's final
+    velocities, the ``previous`` start (skipped when None)."""
     k = int(cfg["n_clusters"])
     if k < 1:
         raise ValueError(f"n_clusters={k}: need at least one cluster")
-    starts = init_candidates(cfg["init"])
+    starts = [s for s in init_candidates(cfg["init"]) if s != PREVIOUS or previous is not None]
     alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
     timings: dict[str, float] = {}
     start = time.perf_counter()
@@ -785,14 +838,20 @@ def segment_window(
     timings["init"] = timings["cluster"] = 0.0
     for method in starts:
         start = time.perf_counter()
-        method_cfg = {**cfg, "init": {**cfg["init"], "method": method}}
-        init = initialise(window, prepared, method_cfg, k, bounds, seed=seed, optimizer=optimizer)
+        if method == PREVIOUS:
+            if objectives is None:
+                objectives = _window_objectives(prepared, t_ref, cfg, optimizer, seed=seed)
+            assert previous is not None  # starts keeps PREVIOUS only with a previous window
+            init = previous_init(previous, prepared, objectives[0], ccfg, bounds, alone=alone)
+        else:
+            method_cfg = {**cfg, "init": {**cfg["init"], "method": method}}
+            init = initialise(
+                window, prepared, method_cfg, k, bounds, seed=seed, optimizer=optimizer
+            )
         timings["init"] += time.perf_counter() - start
         start = time.perf_counter()
         if objectives is None:  # after the first start, so a tile start's volumes are freed
-            evaluator = window_objective(prepared, t_ref, cfg)
-            stages = _step_stages(prepared, t_ref, cfg, optimizer, evaluator, seed=seed)
-            objectives = (evaluator, stages)
+            objectives = _window_objectives(prepared, t_ref, cfg, optimizer, seed=seed)
         result = _cluster_from(
             init,
             prepared,
@@ -843,8 +902,9 @@ def segment_recording(
     neighbouring windows on each side (EDPA between each event's own pair of maps) and
     keeps the labels of its own events. Decision: a longer span pins the velocities down
     (a moving camera's static scene) while each event is still labelled once, by the span
-    centred on its window (docs/method.md, "Context windows"). Events outside every window
-    (before the first or after the last depth map) are -1.
+    centred on its window (docs/method.md, "Context windows"). Each window after the first
+    is handed the one before's final velocities (the ``previous`` start of ``init.auto``).
+    Events outside every window (before the first or after the last depth map) are -1.
     """
     k = int(cfg["n_clusters"])
     n = len(recording.events)
@@ -855,10 +915,19 @@ def segment_recording(
         0, 2**31 - 1, size=max(len(recording.depth_maps), 1)
     )
     spans = recording.spans(cfg["window"]["context"])
+    previous = None
     for w, (index, span, inner) in enumerate(spans):
         extra = f" ({len(span.events)} with its context)" if len(span.events) > len(index) else ""
         log.info("window %d: %d events%s", w, len(index), extra)
-        res = segment_window(span, cfg, optimizer, seed=int(seeds[w]), on_iteration=on_iteration)
+        res = segment_window(
+            span,
+            cfg,
+            optimizer,
+            seed=int(seeds[w]),
+            on_iteration=on_iteration,
+            previous=previous,
+        )
+        previous = res.clustering.thetas
         res = replace(res, labels=res.labels[inner], probabilities=res.probabilities[inner])
         labels[index] = res.labels
         probabilities[index] = res.probabilities
