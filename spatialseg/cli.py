@@ -124,12 +124,13 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
     out_dir.mkdir(parents=True, exist_ok=True)
     labels = ArrayStream(out_dir / "labels.npy", np.int64)
     probabilities = ArrayStream(out_dir / "probabilities.npy", np.float32, k)
-    optimizer, windows = build_optimizer(cfg), []
+    optimizer, windows, previous = build_optimizer(cfg), [], None
     try:
         stream = stream_scene(plain["scene"], window_events=int(cfg.window.events))
         for w, window in enumerate(stream):
             seed = int(np.random.default_rng([int(cfg.seed), w]).integers(2**31 - 1))
-            _, seg = segment_loaded(window, plain, optimizer, seed=seed)
+            _, seg = segment_loaded(window, plain, optimizer, seed=seed, previous=previous)
+            previous = seg.windows[-1].clustering.thetas
             labels.append(seg.labels)
             probabilities.append(seg.probabilities)
             windows += [window_summary(res, None, None) for res in seg.windows]

@@ -895,6 +895,7 @@ def segment_recording(
     *,
     seed: int,
     on_iteration: Any = None,
+    previous: np.ndarray | None = None,
 ) -> SegmentationResult:
     """Segment every window (each pair of consecutive depth maps); labels cover all events.
 
@@ -903,7 +904,8 @@ def segment_recording(
     keeps the labels of its own events. Decision: a longer span pins the velocities down
     (a moving camera's static scene) while each event is still labelled once, by the span
     centred on its window (docs/method.md, "Context windows"). Each window after the first
-    is handed the one before's final velocities (the ``previous`` start of ``init.auto``).
+    is handed the one before's final velocities (the ``previous`` start of ``init.auto``);
+    ``previous`` is the first window's (a stream's preceding chunk), None: none.
     Events outside every window (before the first or after the last depth map) are -1.
     """
     k = int(cfg["n_clusters"])
@@ -915,7 +917,6 @@ def segment_recording(
         0, 2**31 - 1, size=max(len(recording.depth_maps), 1)
     )
     spans = recording.spans(cfg["window"]["context"])
-    previous = None
     for w, (index, span, inner) in enumerate(spans):
         extra = f" ({len(span.events)} with its context)" if len(span.events) > len(index) else ""
         log.info("window %d: %d events%s", w, len(index), extra)
@@ -956,15 +957,19 @@ def segment_loaded(
     *,
     seed: int,
     on_iteration: Any = None,
+    previous: np.ndarray | None = None,
 ) -> tuple[Recording, SegmentationResult]:
     """A loaded recording through the ``denoise`` filter, the ``depth`` source and
-    :func:`segment_recording`; the result covers every input event (dropped ones -1). Also
-    returns the recording the result describes: the input with the depth maps used."""
+    :func:`segment_recording` (``previous``: velocities for its first window's ``previous``
+    start); the result covers every input event (dropped ones -1). Also returns the
+    recording the result describes: the input with the depth maps used."""
     from spatialseg.depth import denoised, with_configured_depth
 
     kept, keep = denoised(recording, cfg)
     kept = with_configured_depth(kept, cfg)
-    seg = segment_recording(kept, cfg, optimizer, seed=seed, on_iteration=on_iteration)
+    seg = segment_recording(
+        kept, cfg, optimizer, seed=seed, on_iteration=on_iteration, previous=previous
+    )
     if keep is None:
         return kept, seg
     return replace(recording, depth_maps=kept.depth_maps), with_dropped_events(seg, keep)

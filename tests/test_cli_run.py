@@ -112,7 +112,8 @@ def test_denoised_run_labels_every_input_event_in_order(recording_dir, tmp_path)
 
 
 def test_streamed_run_segments_window_by_window(recording_dir, tmp_path):
-    """scene.stream=true: windows of window.events read one at a time; outputs cover all."""
+    """scene.stream=true: windows of window.events read one at a time, each handed the one
+    before's velocities; outputs cover all."""
     from spatialseg.io import read_recording
 
     out = tmp_path / "run"
@@ -136,6 +137,8 @@ def test_streamed_run_segments_window_by_window(recording_dir, tmp_path):
     if 0 < tail < 500:  # a short last chunk joins the window before it
         expected = [*expected[:-2], 1000 + tail]
     assert sizes == expected
+    # each window after the first also starts from the velocities the one before ended with
+    assert (out / "cli.log").read_text().count("start previous:") == len(sizes) - 1
     assert np.load(out / "labels.npy").shape == (n,)
     assert np.load(out / "probabilities.npy").shape == (n, 2)
     assert not list(out.glob(".*.raw"))
