@@ -13,6 +13,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from spatialseg.checks import is_integer
 from spatialseg.events import EventStream
 
 __all__ = ["denoise_mask"]
@@ -47,7 +48,7 @@ def denoise_mask(events: EventStream, *, radius: int, window: float) -> np.ndarr
     without the pixel itself (so a hot pixel does not support its own events); polarity is
     ignored. Events at the same timestamp support each other only in stream order.
     """
-    if not isinstance(radius, int | np.integer) or isinstance(radius, bool) or radius < 1:
+    if not is_integer(radius, 1):
         raise ValueError(f"denoise.radius must be an integer >= 1 (pixels), got {radius!r}")
     real = isinstance(window, int | float | np.floating) and not isinstance(window, bool)
     if not (real and np.isfinite(window) and window > 0):

@@ -25,6 +25,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from spatialseg.checks import is_integer
 from spatialseg.denoise import denoise_mask
 from spatialseg.recording import Camera, DepthMap, Keyframe, Recording, event_boundaries
 
@@ -233,9 +234,7 @@ def _input_size(value: Any) -> tuple[int, int] | None:
     if value is None:
         return None
     size = list(value) if not isinstance(value, str | bytes) else []
-    if len(size) != 2 or not all(
-        isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size
-    ):
+    if len(size) != 2 or not all(is_integer(s, 1) for s in size):
         raise ValueError(f"depth.input_size must be null or [H, W] in pixels, got {value!r}")
     return int(size[0]), int(size[1])
 
@@ -296,7 +295,7 @@ class OnnxDepth(DepthSource):
             raise ValueError("depth.scale must be nonzero for scaling=affine")
         self.max_depth = _optional_positive(cfg, "max_depth")
         threads = cfg.get("threads")
-        if not isinstance(threads, int) or isinstance(threads, bool) or threads < 0:
+        if not is_integer(threads, 0):
             raise ValueError(f"depth.threads must be an integer >= 0, got {threads!r}")
         self._session = self._load(threads)
         self._input = self._session.get_inputs()[0]

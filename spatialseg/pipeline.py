@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from spatialseg import edpa, hypotheses, motion_init
+from spatialseg.checks import is_integer
 from spatialseg.clustering import (
     ClusteringResult,
     ConvergenceRules,
@@ -640,7 +641,7 @@ def p_step_settings(
     camera")."""
     given, sigma_key = _p_step_option(ccfg, "sigma", alone=alone)
     stride, stride_key = _p_step_option(ccfg, "stride", alone=alone)
-    if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+    if not is_integer(stride, 1):
         raise ValueError(f"{stride_key} must be an integer >= 1, got {stride!r}")
     sigmas = p_step_sigmas(given, sigma_key)
     check_p_step_blur(sigmas[0], stride, given, (sigma_key, stride_key))
@@ -713,7 +714,7 @@ def _refit_budget(cfg: Mapping[str, Any]) -> int:
     ``clustering.refit.radius`` is in (0, 1]; a one-line error otherwise."""
     rcfg = cfg["clustering"]["refit"]
     budget, radius = rcfg["evals"], rcfg["radius"]
-    if isinstance(budget, bool) or not isinstance(budget, int) or budget < 0:
+    if not is_integer(budget, 0):
         raise ValueError(f"clustering.refit.evals must be an integer >= 0 (0: off), got {budget!r}")
     if isinstance(radius, bool) or not isinstance(radius, int | float) or not 0 < radius <= 1:
         raise ValueError(f"clustering.refit.radius must be a number in (0, 1], got {radius!r}")

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from spatialseg.checks import is_integer
 from spatialseg.events import EventStream
 
 __all__ = [
@@ -184,7 +185,7 @@ class Recording:
 
 def check_window_context(context: Any) -> None:
     """Raise a one-line error unless ``window.context`` is an integer >= 0 (not a bool)."""
-    if isinstance(context, bool) or not isinstance(context, int | np.integer) or context < 0:
+    if not is_integer(context, 0):
         raise ValueError(f"window.context must be an integer >= 0, got {context!r}")
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from spatialseg.checks import is_integer
 from spatialseg.events import EventStream, normalise_polarity
 from spatialseg.io._events import (
     PathLike,
@@ -327,7 +328,7 @@ def iter_event_chunks(
     ``width``/``height`` give the sensor size for files that do not store it (``.txt``).
     """
     path = Path(path)
-    if isinstance(chunk_events, bool) or not isinstance(chunk_events, int) or chunk_events <= 0:
+    if not is_integer(chunk_events, 1):
         raise ValueError(f"chunk_events={chunk_events!r}; give a positive integer")
     given = _size_pair("width=/height=", width, height)
     kind = recording_kind(path)

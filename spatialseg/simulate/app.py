@@ -15,6 +15,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import to_absolute_path
 from omegaconf import DictConfig, OmegaConf
 
+from spatialseg.checks import is_integer
 from spatialseg.cli import launch
 from spatialseg.config import ConfigError, validate_config
 from spatialseg.recording import Recording
@@ -37,7 +38,7 @@ def _window_events(cfg: DictConfig) -> int | None:
     events = cfg.window.events
     if events is None:
         return None
-    if isinstance(events, bool) or not isinstance(events, int) or events < 1:
+    if not is_integer(events, 1):
         raise ConfigError(f"window.events must be a positive integer or null, got {events!r}")
     return events
 

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from spatialseg.checks import is_integer
 from spatialseg.recording import Camera
 
 __all__ = [
@@ -202,9 +203,9 @@ class _Reader:
     def integer(self, key: str, *, low: int) -> int:
         """An integer ``>= low``."""
         value = self.data[key]
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        if not is_integer(value, low):
             raise self._fail(key, f"must be an integer >= {low}, got {value!r}")
-        return value
+        return int(value)
 
     def vector(self, key: str, length: int = 3) -> np.ndarray:
         """A list of ``length`` finite numbers as a float64 array."""

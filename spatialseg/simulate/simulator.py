@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from spatialseg.checks import is_integer
 from spatialseg.events import EventStream
 from spatialseg.recording import DepthMap, GroundTruth, Keyframe, Recording, event_boundaries
 from spatialseg.simulate.depth_error import corrupt_depth_maps
@@ -73,11 +74,6 @@ def _ground_truth(scene: Scene, labels: np.ndarray) -> GroundTruth:
     return GroundTruth(labels, motions, names)
 
 
-def _is_count(value: Any) -> bool:
-    """A positive integer (a bool is not one)."""
-    return not isinstance(value, bool) and isinstance(value, int | np.integer) and value >= 1
-
-
 def simulate_scene(
     scene_cfg: Mapping[str, Any], *, seed: int, max_events: int | None, windows: int = 1
 ) -> Recording:
@@ -92,9 +88,9 @@ def simulate_scene(
     scene (planes and props; an object only with a nonzero ego-velocity), 1..N the objects
     in YAML order, -1 noise.
     """
-    if max_events is not None and not _is_count(max_events):
+    if max_events is not None and not is_integer(max_events, 1):
         raise ValueError(f"max_events must be a positive integer or None, got {max_events!r}")
-    if not _is_count(windows):
+    if not is_integer(windows, 1):
         raise ValueError(f"window.count must be a positive integer, got {windows!r}")
     if max_events is None and windows > 1:
         raise ValueError("window.count > 1 needs window.events, the events per window")

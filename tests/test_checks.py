@@ -1,0 +1,35 @@
+"""The shared integer check every count in a config goes through."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spatialseg.checks import is_integer
+from spatialseg.recording import check_window_context
+
+
+@pytest.mark.parametrize(
+    ("value", "minimum", "expected"),
+    [
+        (3, 1, True),
+        (np.int64(3), 1, True),
+        (0, 0, True),
+        (0, 1, False),
+        (-1, 0, False),
+        (True, 0, False),
+        (np.bool_(True), 0, False),
+        (3.0, 1, False),
+        ("3", 1, False),
+        (None, 0, False),
+    ],
+)
+def test_is_integer_takes_python_and_numpy_integers_not_bools_or_floats(value, minimum, expected):
+    assert is_integer(value, minimum) is expected
+
+
+def test_a_numpy_integer_is_a_valid_count_wherever_a_python_one_is():
+    """Keys checked through is_integer accept both kinds alike (here window.context)."""
+    check_window_context(np.int32(1))
+    with pytest.raises(ValueError, match=r"window\.context must be an integer >= 0, got True"):
+        check_window_context(True)
