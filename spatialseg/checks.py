@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["is_integer"]
+__all__ = ["is_integer", "optional_positive"]
 
 
 def is_integer(value: Any, minimum: int) -> bool:
@@ -14,3 +14,16 @@ def is_integer(value: Any, minimum: int) -> bool:
     (YAML's ``true`` is an ``int`` to Python, and never a count)."""
     integer = isinstance(value, int | np.integer) and not isinstance(value, bool)
     return integer and bool(value >= minimum)
+
+
+def optional_positive(value: Any, key: str) -> float | None:
+    """``value`` as a positive finite float, None for null; else a one-line ValueError that
+    names the setting ``key``."""
+    if value is None:
+        return None
+    number = isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool
+    )
+    if not number or not np.isfinite(value) or not value > 0:
+        raise ValueError(f"{key} must be a positive number or null, got {value!r}")
+    return float(value)

@@ -230,10 +230,21 @@ def p_step(
     p: np.ndarray,
     sigma: float | Sequence[float],
     stride: int,
+    prior_weight: np.ndarray | None = None,
 ) -> np.ndarray:
     """One P-step (Eq. 26) outside the loop: the memberships the volumes of ``thetas``,
-    weighted by ``p`` and smoothed by ``sigma`` voxels, give each event (N x K)."""
-    return update_memberships(_responses(evaluator, thetas, p, sigma, stride)[0])
+    weighted by ``p`` and smoothed by ``sigma`` voxels, give each event (N x K).
+
+    ``prior_weight`` (N,) in [0, 1]: each event's responses are multiplied by the clusters'
+    shares (mean memberships) raised to it, a prior on the cluster sizes where the warps
+    say little (0 or None: none, the paper's P-step)."""
+    responses = _responses(evaluator, thetas, p, sigma, stride)[0]
+    if prior_weight is not None:
+        weight = np.asarray(prior_weight, dtype=np.float64)
+        if weight.shape != (len(p),) or not np.all((weight >= 0) & (weight <= 1)):
+            raise ValueError(f"prior_weight must be {len(p)} numbers in [0, 1]")
+        responses = responses * p.mean(axis=0)[None, :] ** weight[:, None]
+    return update_memberships(responses)
 
 
 def _responses(

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from spatialseg import edpa, hypotheses, motion_init
-from spatialseg.checks import is_integer
+from spatialseg.checks import is_integer, optional_positive
 from spatialseg.clustering import (
     ClusteringResult,
     ConvergenceRules,
@@ -44,8 +44,10 @@ __all__ = [
     "p_step_settings",
     "prepare",
     "previous_init",
+    "prior_weights",
     "reference_time",
     "refit_velocities",
+    "relabel_prior_scale",
     "search_bounds",
     "segment_loaded",
     "segment_recording",
@@ -347,6 +349,7 @@ def check_config(cfg: Mapping[str, Any]) -> None:
     depth_change_cap(cfg["clustering"])
     relabel_sigmas(cfg["clustering"], alone=False)
     relabel_sigmas(cfg["clustering"], alone=True)
+    relabel_prior_scale(cfg["clustering"])
 
 
 def relabel_sigmas(ccfg: Mapping[str, Any], *, alone: bool) -> tuple[float, float, float] | None:
@@ -362,16 +365,40 @@ def relabel_sigmas(ccfg: Mapping[str, Any], *, alone: bool) -> tuple[float, floa
     return None if value is None else p_step_sigmas(value, key)
 
 
+def relabel_prior_scale(ccfg: Mapping[str, Any]) -> float | None:
+    """``clustering.relabel_prior_scale``, validated: a positive number of voxels, or None."""
+    return optional_positive(ccfg["relabel_prior_scale"], "clustering.relabel_prior_scale")
+
+
+def prior_weights(
+    prepared: Prepared, thetas: np.ndarray, p: np.ndarray, scale: float
+) -> np.ndarray:
+    """Per event, ``exp(-d^2 / 2 scale^2)``: ``d`` is how far apart (voxels) its point lands
+    when moved over half the span by its two likeliest motions (by ``p``); 1 where the two
+    cannot tell the event apart, towards 0 where they clearly can (N,).
+
+    Decision: where two motions move a region alike (a forward-moving camera's far wall
+    near the focus of expansion, seen past a person crossing), both volumes hold the same
+    events there and the P-step keeps whatever memberships they had: its labels depend on
+    the start, not on evidence. There the clusters' shares decide
+    (:func:`spatialseg.clustering.p_step`, docs/method.md, "Relabelling")."""
+    if len(thetas) < 2:
+        return np.zeros(len(p))
+    half = 0.5 * float(prepared.t.max() - prepared.t.min())
+    full = np.zeros((len(thetas), 3))
+    full[:, : thetas.shape[1]] = thetas
+    moved = np.stack(
+        [prepared.grid.continuous_index(prepared.points - half * v) for v in full], axis=1
+    )
+    top = np.argsort(-p, axis=1, kind="stable")[:, :2]
+    rows = np.arange(len(p))
+    gap = np.linalg.norm(moved[rows, top[:, 0]] - moved[rows, top[:, 1]], axis=1)
+    return np.exp(-0.5 * (np.nan_to_num(gap, nan=np.inf) / scale) ** 2)
+
+
 def depth_change_cap(ccfg: Mapping[str, Any]) -> float | None:
     """``clustering.max_depth_change``, validated: a positive number, or None for no cap."""
-    value = ccfg["max_depth_change"]
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
-        raise ValueError(
-            f"clustering.max_depth_change must be a positive number or null, got {value!r}"
-        )
-    return float(value)
+    return optional_positive(ccfg["max_depth_change"], "clustering.max_depth_change")
 
 
 def init_candidates(init_cfg: Mapping[str, Any]) -> list[str]:
@@ -877,7 +904,13 @@ def segment_window(
     sigmas = relabel_sigmas(cfg["clustering"], alone=alone)
     if sigmas is not None:
         start = time.perf_counter()
-        relabelled = p_step(objectives[0], result.thetas, result.probabilities, sigmas, 1)
+        scale = relabel_prior_scale(ccfg)
+        prior = (
+            None
+            if scale is None
+            else prior_weights(prepared, result.thetas, result.probabilities, scale)
+        )
+        relabelled = p_step(objectives[0], result.thetas, result.probabilities, sigmas, 1, prior)
         result = replace(result, probabilities=relabelled)
         timings["relabel"] = time.perf_counter() - start
     labels = assign_labels(

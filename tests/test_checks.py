@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spatialseg.checks import is_integer
+from spatialseg.checks import is_integer, optional_positive
 from spatialseg.recording import check_window_context
 
 
@@ -33,3 +33,11 @@ def test_a_numpy_integer_is_a_valid_count_wherever_a_python_one_is():
     check_window_context(np.int32(1))
     with pytest.raises(ValueError, match=r"window\.context must be an integer >= 0, got True"):
         check_window_context(True)
+
+
+def test_optional_positive_is_a_float_or_none_and_names_the_key():
+    assert optional_positive(None, "k") is None
+    assert optional_positive(2, "k") == 2.0 and optional_positive(np.float32(0.5), "k") == 0.5
+    for bad in (0, -1.0, float("nan"), float("inf"), True, "5"):
+        with pytest.raises(ValueError, match=r"^a\.b must be a positive number or null, got"):
+            optional_positive(bad, "a.b")

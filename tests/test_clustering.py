@@ -11,9 +11,11 @@ import optimizers
 from spatialseg.clustering import (
     ConvergenceRules,
     IterationRecord,
+    _responses,
     _stop_reason,
     initial_memberships,
     iterative_clustering,
+    p_step,
     update_memberships,
 )
 from spatialseg.config import conf_dir
@@ -104,6 +106,27 @@ def test_clustering_recovers_two_known_motions():
     assert np.mean(result.probabilities.argmax(axis=1) == labels) > 0.95
     totals = [r.total for r in result.history]
     assert len(totals) == result.iterations and all(np.isfinite(totals))
+
+
+def test_p_step_prior_weight_scales_responses_by_the_cluster_shares():
+    """prior_weight 0 is the paper's P-step; 1 multiplies each event's responses by the
+    clusters' shares (mean memberships), which moves events towards the larger cluster."""
+    rng = np.random.default_rng(0)
+    points, dt, labels, truth = _two_motion_cloud(rng)
+    grid = grid_around(points, np.array([0.005, 0.005, 0.02]), 0.1, 10**7)
+    evaluator = ModelEvaluator(VolumeObjective(points, dt, grid, "variance"), 3)
+    p = np.where(labels[:, None] == np.arange(2), 0.8, 0.2)
+    p[: len(p) // 4] = [0.9, 0.1]  # cluster 0 the larger
+    plain = p_step(evaluator, truth, p, 2.0, 1)
+    none = p_step(evaluator, truth, p, 2.0, 1, np.zeros(len(p)))
+    full = p_step(evaluator, truth, p, 2.0, 1, np.ones(len(p)))
+    np.testing.assert_allclose(none, plain, atol=1e-12)
+    responses = _responses(evaluator, truth, p, 2.0, 1)[0]
+    np.testing.assert_allclose(full, update_memberships(responses * p.mean(axis=0)), atol=1e-12)
+    assert p.mean(axis=0)[0] > 0.5 and np.all(full[:, 0] >= plain[:, 0] - 1e-12)
+    for bad in (np.ones(3), np.full(len(p), 1.5)):
+        with pytest.raises(ValueError, match=r"prior_weight must be \d+ numbers in \[0, 1\]"):
+            p_step(evaluator, truth, p, 2.0, 1, bad)
 
 
 def test_theta_step_on_a_subset_labels_every_event():

@@ -18,6 +18,7 @@ from spatialseg.pipeline import (
     p_step_sigmas,
     prepare,
     previous_init,
+    prior_weights,
     reference_time,
     search_bounds,
     segment_recording,
@@ -513,7 +514,8 @@ def test_the_moving_camera_preset_is_the_defaults():
 
 def test_relabelling_is_one_p_step_at_the_final_velocities(interior):
     """The labels come from one more P-step at the final (refitted) velocities, weighted by
-    the loop's memberships and smoothed by the relabel sigma; null keeps the loop's
+    the loop's memberships, smoothed by the relabel sigma and with the clusters' shares as a
+    prior where the motions agree (clustering.relabel_prior_scale); null keeps the loop's
     memberships, and the velocities are the same either way. This window is clustered
     alone, so clustering.p_step_alone.relabel_sigma is the one that counts."""
     from spatialseg.clustering import p_step
@@ -542,10 +544,34 @@ def test_relabelling_is_one_p_step_at_the_final_velocities(interior):
     assert np.array_equal(loop.clustering.thetas, on.clustering.thetas)
     evaluator = window_objective(loop.prepared, loop.t_ref, cfg)
     thetas, p = loop.clustering.thetas, loop.clustering.probabilities
-    expected = p_step(evaluator, thetas, p, (1.0, 1.0, 0.5), 1)
+    prior = prior_weights(loop.prepared, thetas, p, cfg["clustering"]["relabel_prior_scale"])
+    expected = p_step(evaluator, thetas, p, (1.0, 1.0, 0.5), 1, prior)
     np.testing.assert_allclose(on.clustering.probabilities, expected, atol=1e-12)
     assert not np.allclose(expected, p)  # the relabelling changed the memberships
     assert "relabel" in on.timings
+
+
+def test_prior_weights_are_one_where_the_motions_agree_and_fall_with_their_gap(interior):
+    """An event's weight is exp(-d^2 / 2 s^2), d the voxels between where its two likeliest
+    motions move its point over half the span: 1 for equal motions, ~0 for very different
+    ones, rising with the scale; one cluster has no prior."""
+    cfg, rec = interior
+    _, window = next(rec.windows())
+    prepared = prepare(window, cfg)
+    truth = np.array(list(rec.ground_truth.motions.values()))
+    p = np.full((len(prepared.points), 2), 0.5)
+    same = prior_weights(prepared, np.array([truth[0], truth[0]]), p, 5.0)
+    apart = prior_weights(prepared, np.array([truth[0], truth[0] + [50.0, 0.0, 0.0]]), p, 5.0)
+    narrow, wide = (prior_weights(prepared, truth, p, s) for s in (2.0, 20.0))
+    assert np.allclose(same, 1.0) and np.all(apart < 1e-3)
+    assert np.all(wide >= narrow) and wide.mean() > narrow.mean()
+    assert np.all(prior_weights(prepared, truth[:1], p[:, :1], 5.0) == 0)
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "wide"])
+def test_a_bad_relabel_prior_scale_is_refused_before_the_run(value):
+    with pytest.raises(ValueError, match=r"clustering\.relabel_prior_scale must be a positive"):
+        check_config(_config(f"clustering.relabel_prior_scale={value}"))
 
 
 @pytest.mark.parametrize("value", ["-1.0", "[1.0,2.0,3.0]", "sharp"])
