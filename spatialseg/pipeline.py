@@ -334,7 +334,7 @@ def check_config(cfg: Mapping[str, Any]) -> None:
     only once the run reaches them, or never (an optimiser named for a stage that does not
     run): the starts, the optimisers named by key, the refit's budget, the P-step and
     relabelling smoothing and its grid (for windows with neighbours and alone), the context
-    and the depth-change cap."""
+    the depth-change cap and EDPA's edge radius."""
     init_candidates(cfg["init"])
     init_candidates({**cfg["init"], "method": "auto"})  # init.auto, read only with auto
     _check_optimizer_name(str(cfg["init"]["tiles"]["refit"]), "init.tiles.refit")
@@ -350,6 +350,7 @@ def check_config(cfg: Mapping[str, Any]) -> None:
     relabel_sigmas(cfg["clustering"], alone=False)
     relabel_sigmas(cfg["clustering"], alone=True)
     relabel_prior_scale(cfg["clustering"])
+    edpa.check_edge_radius(cfg["edpa"]["edge_radius"])
 
 
 def relabel_sigmas(ccfg: Mapping[str, Any], *, alone: bool) -> tuple[float, float, float] | None:
@@ -439,6 +440,7 @@ def prepare(window: Recording, cfg: Mapping[str, Any]) -> Prepared:
         unknown_depth=cfg["edpa"]["unknown_depth"],
         fill_radius=int(cfg["edpa"]["fill_radius"]),
         edge_ratio=cfg["edpa"]["edge_ratio"],
+        edge_radius=cfg["edpa"]["edge_radius"],
     )
     dense = edpa.dense_depth_bands(
         lifted.points[:, 2], gap=float(vol["depth_gap"]), min_share=vol["min_band_share"]

@@ -30,9 +30,9 @@ from spatialseg.scenes import load_scene
 from spatialseg.volume import VolumeObjective
 
 
-def _config(*overrides: str) -> dict:
+def _config(*overrides: str, scene: str = "interior") -> dict:
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-        cfg = compose("config", overrides=["+scene=interior", "window.events=4000", *overrides])
+        cfg = compose("config", overrides=[f"+scene={scene}", "window.events=4000", *overrides])
     return OmegaConf.to_container(cfg, resolve=True)
 
 
@@ -219,8 +219,7 @@ def test_approaching_box_contrast_peaks_at_its_depth_velocity():
     """approach: noise on the 8 m wall would stretch the grid to 0.31 m depth voxels, as much
     as the box moves in the window, and put the contrast's maximum near vz = -0.8 (truth
     -2.5). Built on the dense depth band only, the truth beats vz = 0 and is in the box."""
-    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-        cfg = OmegaConf.to_container(compose("config", overrides=["+scene=approach"]))
+    cfg = _config(scene="approach")
     rec = load_scene(cfg["scene"], seed=0, window_events=15000)
     prepared = prepare(rec, cfg)
     assert prepared.grid.voxel_size[2] < 0.05
@@ -287,10 +286,7 @@ def test_events_on_occlusion_edges_do_not_steer_the_velocities():
     approaching box passes in front of the wall)."""
     from spatialseg.pipeline import _step_subset
 
-    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-        cfg = OmegaConf.to_container(
-            compose("config", overrides=["+scene=approach", "clustering.step_edges=false"])
-        )
+    cfg = _config("clustering.step_edges=false", scene="approach")
     _, window = next(load_scene(cfg["scene"], seed=0, window_events=4000).windows())
     prepared = prepare(window, cfg)
     assert prepared.on_edge.any() and not prepared.on_edge.all()
@@ -574,6 +570,12 @@ def test_a_bad_relabel_prior_scale_is_refused_before_the_run(value):
         check_config(_config(f"clustering.relabel_prior_scale={value}"))
 
 
+@pytest.mark.parametrize("value", ["-1", "2.5", "wide"])
+def test_a_bad_edge_radius_is_refused_before_the_run(value):
+    with pytest.raises(ValueError, match=r"edpa\.edge_radius must be an integer >= 0"):
+        check_config(_config(f"edpa.edge_radius={value}"))
+
+
 @pytest.mark.parametrize("value", ["-1.0", "[1.0,2.0,3.0]", "sharp"])
 @pytest.mark.parametrize("key", ["relabel_sigma", "p_step_alone.relabel_sigma"])
 def test_a_bad_relabel_sigma_is_refused_before_the_run(value, key):
@@ -593,3 +595,17 @@ def test_windows_with_neighbours_take_the_top_level_relabel_sigma():
         seg = segment_recording(rec, run_cfg, optimizers.create("ssa_ga"), seed=0)
         assert len(seg.windows) == 3
         assert all(("relabel" in w.timings) == relabelled for w in seg.windows)
+
+
+def test_edpa_edge_radius_reaches_the_lifted_points_of_edge_events_only():
+    """edpa.edge_radius changes the depth of events on occlusion edges (the approaching
+    box's outline), no other."""
+    cfg = _config(scene="approach")
+    _, window = next(load_scene(cfg["scene"], seed=0, window_events=4000).windows())
+    still = prepare(window, cfg)
+    cfg_moving = {**cfg, "edpa": {**cfg["edpa"], "edge_radius": 8}}
+    moving = prepare(window, cfg_moving)
+    edge = still.on_edge
+    assert edge is not None and edge.any() and np.array_equal(edge, moving.on_edge)
+    np.testing.assert_array_equal(moving.points[~edge], still.points[~edge])
+    assert not np.allclose(moving.points[edge], still.points[edge])
