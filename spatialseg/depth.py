@@ -25,7 +25,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from spatialseg.checks import is_integer
+from spatialseg.checks import is_integer, optional_positive
 from spatialseg.denoise import denoise_mask
 from spatialseg.recording import Camera, DepthMap, Keyframe, Recording, event_boundaries
 
@@ -75,11 +75,6 @@ def _number(cfg: Mapping[str, Any], key: str, *, positive: bool = False) -> floa
         kind = "a positive number" if positive else "a finite number"
         raise ValueError(f"depth.{key} must be {kind}, got {value!r}; fix depth.{key}")
     return float(value)
-
-
-def _optional_positive(cfg: Mapping[str, Any], key: str) -> float | None:
-    """``cfg[key]`` as a positive float, or None when it is null."""
-    return None if cfg.get(key) is None else _number(cfg, key, positive=True)
 
 
 class RecordingDepth(DepthSource):
@@ -157,7 +152,7 @@ class GroundPlaneDepth(DepthSource):
             raise ValueError(f"depth.pitch must be in (-90, 90) degrees, got {pitch}")
         if not -180.0 <= self.roll <= 180.0:
             raise ValueError(f"depth.roll must be in [-180, 180] degrees, got {roll}")
-        self.far_depth = _optional_positive({"far_depth": far_depth}, "far_depth")
+        self.far_depth = optional_positive(far_depth, "depth.far_depth")
 
     def depth_map(self, t: float, camera: Camera, image: np.ndarray | None) -> DepthMap:
         n = ground_normal(np.radians(self.pitch), np.radians(self.roll))
@@ -177,7 +172,7 @@ class GroundPlaneDepth(DepthSource):
             height=_number(cfg, "height", positive=True),
             pitch=_number(cfg, "pitch"),
             roll=_number(cfg, "roll") if cfg.get("roll") is not None else 0.0,
-            far_depth=_optional_positive(cfg, "far_depth"),
+            far_depth=optional_positive(cfg.get("far_depth"), "depth.far_depth"),
         )
 
 
@@ -293,7 +288,7 @@ class OnnxDepth(DepthSource):
         self.shift = _number(cfg, "shift")
         if self.scaling == "affine" and self.scale == 0:
             raise ValueError("depth.scale must be nonzero for scaling=affine")
-        self.max_depth = _optional_positive(cfg, "max_depth")
+        self.max_depth = optional_positive(cfg.get("max_depth"), "depth.max_depth")
         threads = cfg.get("threads")
         if not is_integer(threads, 0):
             raise ValueError(f"depth.threads must be an integer >= 0, got {threads!r}")

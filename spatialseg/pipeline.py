@@ -333,8 +333,8 @@ def check_config(cfg: Mapping[str, Any]) -> None:
     """Refuse, before any data is loaded or simulated, the settings that would otherwise fail
     only once the run reaches them, or never (an optimiser named for a stage that does not
     run): the starts, the optimisers named by key, the refit's budget, the P-step and
-    relabelling smoothing and its grid (for windows with neighbours and alone), the context
-    the depth-change cap and EDPA's edge radius."""
+    relabelling smoothing and its grid (for windows with neighbours and alone), the context,
+    the depth-change cap, the relabelling prior and EDPA's edge radius."""
     init_candidates(cfg["init"])
     init_candidates({**cfg["init"], "method": "auto"})  # init.auto, read only with auto
     _check_optimizer_name(str(cfg["init"]["tiles"]["refit"]), "init.tiles.refit")
