@@ -52,6 +52,7 @@ __all__ = [
     "segment_loaded",
     "segment_recording",
     "segment_window",
+    "spatial_velocities",
     "window_objective",
 ]
 
@@ -146,9 +147,7 @@ class ModelEvaluator:
 
     def batch_value(self, thetas: np.ndarray) -> np.ndarray:
         """Contrast of many candidate velocities (n x dim) in one parallel call."""
-        full = np.zeros((len(thetas), 3))
-        full[:, : self.dim] = thetas
-        return self.inner.batch_value(full)
+        return self.inner.batch_value(spatial_velocities(thetas))
 
     def volume(self, theta: np.ndarray) -> np.ndarray:
         """The volume of warped events for ``theta``."""
@@ -269,8 +268,7 @@ def _tiles_init(
         explained=None if params["explained"] is None else float(params["explained"]),
         seed=seed,
     )
-    thetas = np.zeros((k, 3))
-    thetas[:, : prepared.dim] = velocities
+    thetas = spatial_velocities(velocities)
     labels = np.where(event_tile >= 0, tile_label[np.maximum(event_tile, 0)], -1)
     flows = np.full((len(labels), 3), np.nan)
     return motion_init.InitResult(thetas, flows, 0, False, labels)
@@ -386,10 +384,12 @@ def prior_weights(
     if len(thetas) < 2:
         return np.zeros(len(p))
     half = 0.5 * float(prepared.t.max() - prepared.t.min())
-    full = np.zeros((len(thetas), 3))
-    full[:, : thetas.shape[1]] = thetas
     moved = np.stack(
-        [prepared.grid.continuous_index(prepared.points - half * v) for v in full], axis=1
+        [
+            prepared.grid.continuous_index(prepared.points - half * v)
+            for v in spatial_velocities(thetas)
+        ],
+        axis=1,
     )
     top = np.argsort(-p, axis=1, kind="stable")[:, :2]
     rows = np.arange(len(p))
@@ -541,6 +541,15 @@ def assign_labels(
         confident = probabilities.max(axis=1) >= min_probability
         labels[np.flatnonzero(valid)[confident]] = best[confident]
     return labels
+
+
+def spatial_velocities(thetas: np.ndarray) -> np.ndarray:
+    """Velocities of a model's components (K x 2 planar, K x 3 spatial) as K x 3, the
+    missing vz zero: the form the volume and the results take."""
+    thetas = np.asarray(thetas, dtype=np.float64)
+    full = np.zeros((len(thetas), 3))
+    full[:, : thetas.shape[1]] = thetas
+    return full
 
 
 def _full_probabilities(p: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -828,9 +837,9 @@ def previous_init(
     sigmas, stride = p_step_settings(ccfg, alone=alone)
     uniform = np.full((prepared.points.shape[0], k), 1.0 / k)
     labels = np.argmax(p_step(evaluator, thetas, uniform, sigmas, stride), axis=1)
-    full = np.zeros((k, 3))
-    full[:, : prepared.dim] = thetas
-    return motion_init.InitResult(full, np.full((len(labels), 3), np.nan), 0, False, labels)
+    return motion_init.InitResult(
+        spatial_velocities(thetas), np.full((len(labels), 3), np.nan), 0, False, labels
+    )
 
 
 def segment_window(

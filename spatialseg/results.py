@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.pipeline import SegmentationResult, WindowResult
+from spatialseg.pipeline import SegmentationResult, WindowResult, spatial_velocities
 from spatialseg.recording import Recording
 
 __all__ = [
@@ -33,8 +33,7 @@ def window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) ->
     """JSON-ready description of one window: clusters, convergence, curves, metrics."""
     c = res.clustering
     counts = np.bincount(res.labels[res.labels >= 0], minlength=c.thetas.shape[0])
-    thetas = np.zeros((c.thetas.shape[0], 3))
-    thetas[:, : c.thetas.shape[1]] = c.thetas
+    thetas = spatial_velocities(c.thetas)
     summary: dict[str, Any] = {
         "n_events": int(res.labels.size),
         "n_unassigned": int(np.sum(res.labels < 0)),

@@ -609,3 +609,12 @@ def test_edpa_edge_radius_reaches_the_lifted_points_of_edge_events_only():
     assert edge is not None and edge.any() and np.array_equal(edge, moving.on_edge)
     np.testing.assert_array_equal(moving.points[~edge], still.points[~edge])
     assert not np.allclose(moving.points[edge], still.points[edge])
+
+
+def test_spatial_velocities_pads_a_planar_model_with_zero_vz():
+    from spatialseg.pipeline import spatial_velocities
+
+    planar = np.array([[1.0, 2.0], [3.0, 4.0]])
+    np.testing.assert_array_equal(spatial_velocities(planar), [[1, 2, 0], [3, 4, 0]])
+    spatial = np.array([[1.0, 2.0, 3.0]])
+    np.testing.assert_array_equal(spatial_velocities(spatial), spatial)
