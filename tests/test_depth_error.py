@@ -22,6 +22,7 @@ OFF = {
     "hole_size": 15.0,
     "scale": 1.0,
     "shared": False,
+    "bias": 0.0,
     "seed_offset": 0,
 }
 
@@ -147,6 +148,7 @@ def test_depth_error_changes_only_the_depth_maps_not_events_or_truth():
     [
         ({"holes": 1.0}, r"depth_error.holes must be a share of the pixels in \[0, 1\)"),
         ({"sigma": -0.1}, r"depth_error.sigma must be >= 0"),
+        ({"bias": -0.1}, r"depth_error.bias must be >= 0"),
         ({"correlation": 0.0}, r"depth_error.correlation must be > 0"),
         ({"scale": 0.0}, r"depth_error.scale must be > 0"),
         ({"shared": 1}, r"depth_error.shared must be true or false"),
@@ -181,3 +183,23 @@ def test_cli_override_writes_corrupted_depth_maps(tmp_path):
     rec = read_recording(tmp_path / "rec")
     for depth_map in rec.depth_maps:
         assert np.isnan(depth_map.depth).mean() == pytest.approx(0.05, abs=1e-3)
+
+
+def test_bias_is_one_field_every_map_shares_beside_each_map_s_own_flicker():
+    exact = _maps()
+    logs = [
+        [np.log(m.depth / e.depth) for m, e in zip(maps, exact, strict=True)]
+        for maps in (
+            corrupt_depth_maps(exact, _error(bias=0.1), seed=0),
+            corrupt_depth_maps(exact, _error(bias=0.1, sigma=0.1), seed=0),
+        )
+    ]
+    bias_only, both = logs
+    np.testing.assert_allclose(bias_only[0], bias_only[1], atol=1e-6)
+    assert bias_only[0].std() == pytest.approx(0.1, rel=0.05)
+    correlation = np.corrcoef(both[0].ravel(), both[1].ravel())[0, 1]
+    assert 0.3 < correlation < 0.7  # half shared (the bias), half each map's own
+    flicker = corrupt_depth_maps(exact, _error(sigma=0.1), seed=0)
+    with_bias = corrupt_depth_maps(exact, _error(sigma=0.1, bias=0.1), seed=0)
+    own = [np.log(m.depth / b.depth) for m, b in zip(with_bias, flicker, strict=True)]
+    np.testing.assert_allclose(own[0], own[1], atol=1e-6)  # adding a bias keeps the flicker

@@ -160,12 +160,18 @@ def test_windows_put_a_depth_map_and_keyframe_every_window_of_events(interior):
     assert [len(i) for i, _ in rec.windows()] == [1000, 1000, 1000]
 
 
+def test_a_whole_duration_splits_into_windows_of_equal_event_counts(interior):
+    rec = simulate_scene({**interior, "duration": 0.05}, seed=0, max_events=None, windows=3)
+    counts = [len(index) for index, _ in rec.windows()]
+    assert len(counts) == 3 and max(counts) - min(counts) <= 2
+    assert rec.events.t[-1] <= 0.05
+
+
 @pytest.mark.parametrize(
     ("events", "windows", "message"),
     [
         (1000, 0, "window.count must be a positive integer"),
         (1000, True, "window.count must be a positive integer"),
-        (None, 2, "window.count > 1 needs window.events"),
     ],
 )
 def test_bad_window_counts_are_refused(interior, events, windows, message):

@@ -8,7 +8,9 @@ applies all three to the depth maps a Recording hands to EDPA, as configured by 
 - ``scale * depth * exp(e)``: ``e`` is white noise smoothed by a Gaussian filter and
   normalised to mean 0 and standard deviation ``sigma``. Its autocorrelation falls to 1/e at
   ``correlation`` pixels (filter std ``correlation / 2``). ``exp`` keeps depths positive;
-  the relative error's std is about ``sigma`` for small ``sigma``.
+  the relative error's std is about ``sigma`` for small ``sigma``. With ``bias`` > 0 a
+  second such field of std ``bias``, one for every map, is added to ``e``: a fixed bias
+  beside each map's own flicker.
 - holes: the largest ``holes`` share of a second smooth field (correlation ``hole_size``
   px) becomes NaN, the project's "unknown depth", so holes are blobs of about that size.
 
@@ -24,6 +26,9 @@ from spatialseg.recording import DepthMap
 from spatialseg.simulate.scene import DepthError
 
 __all__ = ["DEPTH_ERROR_STREAM", "corrupt_depth_maps", "hole_mask", "smooth_field"]
+
+#: Child of the depth-error stream that draws the shared ``bias`` field.
+BIAS_STREAM = 1
 
 #: Index of the depth-error stream among the children of ``SeedSequence(seed)`` (0 and 1
 #: are the textures and the pixels), so adding it leaves every earlier draw unchanged.
@@ -61,16 +66,33 @@ def hole_mask(rng: np.random.Generator, shape: tuple[int, int], share: float, si
 
 
 def _corrupt(depth: np.ndarray, error: DepthError, field: np.ndarray, holes: np.ndarray):
-    """One map: scale, multiplicative field (std ``sigma``), NaN in the holes (float64)."""
-    out = error.scale * depth.astype(np.float64) * np.exp(error.sigma * field)
+    """One map: scale, multiplicative field (``sigma`` times a unit field, plus the bias),
+    NaN in the holes (float64)."""
+    out = error.scale * depth.astype(np.float64) * np.exp(field)
     out[holes] = np.nan
     return out
 
 
 def _draws(rng: np.random.Generator, shape: tuple[int, int], error: DepthError):
-    """One error field (zeros without ``sigma``) and one hole mask, drawn in that order."""
-    field = smooth_field(rng, shape, error.correlation) if error.sigma > 0 else np.zeros(shape)
+    """One error field of std ``sigma`` (zeros without it) and one hole mask, drawn in that
+    order."""
+    field = (
+        error.sigma * smooth_field(rng, shape, error.correlation)
+        if error.sigma > 0
+        else np.zeros(shape)
+    )
     return field, hole_mask(rng, shape, error.holes, error.hole_size)
+
+
+def _bias_field(seed: int, shape: tuple[int, int], error: DepthError) -> np.ndarray:
+    """The field of std ``bias`` every map shares (zeros without it), from a stream of its
+    own so that adding a bias leaves the other draws unchanged."""
+    if error.bias == 0:
+        return np.zeros(shape)
+    sequence = np.random.SeedSequence(
+        seed, spawn_key=(DEPTH_ERROR_STREAM, error.seed_offset, BIAS_STREAM)
+    )
+    return error.bias * smooth_field(np.random.default_rng(sequence), shape, error.correlation)
 
 
 def corrupt_depth_maps(
@@ -80,7 +102,7 @@ def corrupt_depth_maps(
 
     Neutral settings (``sigma`` 0, ``holes`` 0, ``scale`` 1) return the maps themselves,
     bit for bit. ``error.shared`` applies one draw to every map; otherwise each map gets
-    its own (per-frame estimation errors).
+    its own (per-frame estimation errors); ``error.bias`` adds one more field to every map.
     """
     if not error.active or not maps:
         return maps
@@ -88,9 +110,10 @@ def corrupt_depth_maps(
     rng = np.random.default_rng(sequence)
     shape = maps[0].depth.shape
     draws = [_draws(rng, shape, error)] if error.shared else None
+    bias = _bias_field(seed, shape, error)
     out = []
     for depth_map in maps:
         field, holes = draws[0] if draws else _draws(rng, shape, error)
-        corrupted = _corrupt(depth_map.depth, error, field, holes)
+        corrupted = _corrupt(depth_map.depth, error, field + bias, holes)
         out.append(DepthMap(depth_map.t, corrupted, source=f"{depth_map.source} (depth error)"))
     return tuple(out)

@@ -88,7 +88,9 @@ class DepthError:
     standard deviation ``sigma`` and correlation length ``correlation`` pixels; then the top
     ``holes`` share of a second smooth field (correlation ``hole_size`` px) becomes unknown
     (NaN) in blobs. ``shared``: both maps get the same field and holes (a fixed bias) instead
-    of independent draws. ``seed_offset`` picks another draw for the same run seed.
+    of independent draws. ``bias``: the std of one more smooth field that every map shares,
+    added to ``e``, so a map can carry a fixed bias and its own flicker at once (a depth
+    network run per frame). ``seed_offset`` picks another draw for the same run seed.
     """
 
     sigma: float
@@ -98,11 +100,12 @@ class DepthError:
     scale: float
     shared: bool
     seed_offset: int
+    bias: float = 0.0
 
     @property
     def active(self) -> bool:
         """False when every setting is neutral: the depth maps are then left untouched."""
-        return self.sigma > 0 or self.holes > 0 or self.scale != 1.0
+        return self.sigma > 0 or self.bias > 0 or self.holes > 0 or self.scale != 1.0
 
 
 #: No corruption: a scene without a ``depth_error`` block (the two lengths are then unused).
@@ -118,6 +121,7 @@ DEPTH_ERROR_KEYS = (
     "hole_size",
     "scale",
     "shared",
+    "bias",
     "seed_offset",
 )
 
@@ -321,6 +325,7 @@ def _depth_error(r: _Reader) -> DepthError:
         scale=r.number("scale", positive=True),
         shared=r.flag("shared"),
         seed_offset=r.integer("seed_offset", low=0),
+        bias=r.number("bias", low=0.0),
     )
 
 

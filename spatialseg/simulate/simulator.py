@@ -15,7 +15,7 @@ from spatialseg.simulate.render import STATIC_SCENE, Frame, Renderer, surface_co
 from spatialseg.simulate.scene import Scene, parse_scene
 from spatialseg.simulate.sensor import EventChunk, Pixels
 
-__all__ = ["simulate_scene"]
+__all__ = ["simulate_scene", "texture_keys"]
 
 #: Name of the static background when it is an object (camera with ego-velocity).
 STATIC_SCENE_NAME = "static scene"
@@ -74,6 +74,13 @@ def _ground_truth(scene: Scene, labels: np.ndarray) -> GroundTruth:
     return GroundTruth(labels, motions, names)
 
 
+def texture_keys(scene: Scene, seed: int) -> np.ndarray:
+    """One texture key per surface (:func:`surface_count`) for ``seed``: the first stream
+    of ``SeedSequence(seed)`` (the second draws the pixels' thresholds)."""
+    textures = np.random.default_rng(np.random.SeedSequence(seed).spawn(2)[0])
+    return textures.integers(0, 2**62, surface_count(scene))
+
+
 def simulate_scene(
     scene_cfg: Mapping[str, Any], *, seed: int, max_events: int | None, windows: int = 1
 ) -> Recording:
@@ -83,7 +90,8 @@ def simulate_scene(
     ``duration``. Depth maps and keyframes are rendered at the first event (0 without
     events) and at the last event (the end of the simulation without events), and with
     ``windows`` > 1 at every ``max_events``-th event between (a last window of fewer than
-    half as many events joins the one before); the scene's ``depth_error`` corrupts
+    half as many events joins the one before; without ``max_events``, the whole duration
+    is split into ``windows`` windows of equal event counts); the scene's ``depth_error`` corrupts
     these maps only (labels come from the exact renders). Ground-truth ids: 0 is the static
     scene (planes and props; an object only with a nonzero ego-velocity), 1..N the objects
     in YAML order, -1 noise.
@@ -92,13 +100,10 @@ def simulate_scene(
         raise ValueError(f"max_events must be a positive integer or None, got {max_events!r}")
     if not is_integer(windows, 1):
         raise ValueError(f"window.count must be a positive integer, got {windows!r}")
-    if max_events is None and windows > 1:
-        raise ValueError("window.count > 1 needs window.events, the events per window")
     per_window, max_events = max_events, None if max_events is None else max_events * windows
     scene = parse_scene(scene_cfg)
-    textures, thresholds = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(2))
-    keys = textures.integers(0, 2**62, surface_count(scene))
-    renderer = Renderer(scene, keys)
+    renderer = Renderer(scene, texture_keys(scene, seed))
+    thresholds = np.random.default_rng(np.random.SeedSequence(seed).spawn(2)[1])
     chunks, end = _run(scene, renderer, thresholds, max_events)
     keep = slice(0, max_events)
     pixel = np.concatenate([c.pixel for c in chunks] or [np.zeros(0, np.int64)])[keep]
@@ -114,8 +119,8 @@ def simulate_scene(
     )
     labels = np.concatenate([c.label for c in chunks] or [np.zeros(0, np.int64)])[keep]
     times = (events.t[0], events.t[-1]) if len(events) else (0.0, end)
-    if per_window is not None and windows > 1 and len(events):
-        times = event_boundaries(events.t, per_window)
+    if windows > 1 and len(events):
+        times = event_boundaries(events.t, per_window or -(-len(events) // windows))
     frames = [renderer.render(float(t)) for t in times]
     depth_maps = tuple(
         DepthMap(f.t, f.depth, source=f"simulated depth t={f.t:.6f}") for f in frames
