@@ -3,19 +3,22 @@
 Clusters are matched one-to-one to ground-truth objects by the Hungarian algorithm on the
 contingency table (events of cluster c that belong to object o), maximising the number of
 correctly labelled events. Noise events (truth -1) are left out of accuracy and IoU and
-reported on their own; unassigned events (prediction -1) count as wrong. Everything
+reported on their own; unassigned events (prediction -1) count as wrong. A recording of
+several windows is scored with one matching over all its events
+(:func:`recording_metrics`), so a cluster id must name the same object in every window.
+Everything
 returned is a plain JSON-serialisable type; dictionary keys are strings so a JSON round
 trip gives back the same dictionary.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-__all__ = ["segmentation_metrics"]
+__all__ = ["recording_metrics", "segmentation_metrics"]
 
 
 def _labels(a: np.ndarray, name: str) -> np.ndarray:
@@ -174,3 +177,60 @@ def segmentation_metrics(
         )
         result["velocity_error_rel"] = float(np.mean(rel)) if rel else None
     return result
+
+
+def _window_velocity_errors(
+    match: Mapping[int, int],
+    pred: np.ndarray,
+    windows: Sequence[np.ndarray],
+    window_velocities: Sequence[np.ndarray],
+    true_motions: Mapping[int, np.ndarray],
+) -> list[float]:
+    """|v - v_true| / |v_true| of every matched cluster in every window it has events in,
+    its velocity taken from that window (rows of ``window_velocities[w]`` are cluster ids)."""
+    errors = []
+    for index, velocities in zip(windows, window_velocities, strict=True):
+        v = np.asarray(velocities, dtype=np.float64)
+        present = set(np.unique(pred[index][pred[index] >= 0]).tolist())
+        for cluster, obj in match.items():
+            truth = np.asarray(true_motions[obj], dtype=np.float64)
+            speed = float(np.linalg.norm(truth))
+            if cluster in present and cluster < len(v) and speed > 0:
+                errors.append(float(np.linalg.norm(v[cluster] - truth)) / speed)
+    return errors
+
+
+def recording_metrics(
+    pred: np.ndarray,
+    truth: np.ndarray,
+    windows: Sequence[np.ndarray],
+    *,
+    window_velocities: Sequence[np.ndarray] | None = None,
+    true_motions: Mapping[int, np.ndarray] | None = None,
+) -> dict:
+    """Score a whole recording: :func:`segmentation_metrics` with one Hungarian matching
+    over all its events, so a cluster id must name one object in every window (a
+    segmentation whose ids swap between windows loses the swapped events).
+
+    ``windows`` holds each window's event indices. Adds ``accuracy_per_window`` (each window
+    matched on its own, events pooled: what a method scores if its ids restart per window)
+    and, with ``window_velocities`` (per window, K x 3, row = cluster id) and
+    ``true_motions``, ``velocity_error_rel``: the mean relative error of every matched cluster
+    in every window it has events in (None when nothing is matched).
+    """
+    pred = _labels(pred, "pred")
+    truth = _labels(truth, "truth")
+    whole = segmentation_metrics(pred, truth)
+    matched = signal = 0
+    for index in windows:
+        part_truth = truth[index]
+        n = int(np.sum(part_truth >= 0))
+        if n:
+            matched += round(segmentation_metrics(pred[index], part_truth)["accuracy"] * n)
+            signal += n
+    whole["accuracy_per_window"] = _share(matched, signal)
+    if window_velocities is not None and true_motions is not None:
+        match = {int(c): o for c, o in whole["matching"].items()}
+        errors = _window_velocity_errors(match, pred, windows, window_velocities, true_motions)
+        whole["velocity_error_rel"] = float(np.mean(errors)) if errors else None
+    return whole

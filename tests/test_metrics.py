@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from spatialseg.metrics import segmentation_metrics
+from spatialseg.metrics import recording_metrics, segmentation_metrics
 
 TRUTH = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 2])
 
@@ -134,3 +134,31 @@ def test_bad_input_raises_clear_errors():
     for args, kwargs, message in cases:
         with pytest.raises(ValueError, match=message):
             segmentation_metrics(*args, **kwargs)
+
+
+def test_one_matching_over_the_recording_counts_ids_swapped_between_windows():
+    """Each window perfect on its own, but window 2's ids swapped: one matching over the
+    whole recording loses window 2's events, the per-window matching does not."""
+    truth = np.array([1, 1, 2, 2, 1, 1, 2, 2])
+    pred = np.array([0, 0, 1, 1, 1, 1, 0, 0])
+    windows = [np.arange(4), np.arange(4, 8)]
+    m = recording_metrics(pred, truth, windows)
+    assert m["accuracy"] == 0.5 and m["accuracy_per_window"] == 1.0
+    consistent = recording_metrics(np.array([0, 0, 1, 1, 0, 0, 1, 1]), truth, windows)
+    assert consistent["accuracy"] == consistent["accuracy_per_window"] == 1.0
+
+
+def test_recording_velocity_error_takes_each_window_s_own_velocity():
+    truth = np.array([1, 1, 2, 2, 1, 1, 2, 2])
+    windows = [np.arange(4), np.arange(4, 8)]
+    motions = {1: np.array([1.0, 0, 0]), 2: np.array([0.0, 2, 0])}
+    velocities = [np.array([[1.0, 0, 0], [0, 2, 0]]), np.array([[1.5, 0, 0], [0, 2, 0]])]
+    m = recording_metrics(
+        np.array([0, 0, 1, 1, 0, 0, 1, 1]),
+        truth,
+        windows,
+        window_velocities=velocities,
+        true_motions=motions,
+    )
+    assert m["velocity_error_rel"] == pytest.approx(0.5 / 4)  # one of four pairs off by 50 %
+    assert "velocity_error_rel" not in recording_metrics(truth - 1, truth, windows)
