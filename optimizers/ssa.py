@@ -5,8 +5,8 @@ Each generation ranks the remembered positions (rank 1 is the best), then
 * producers (the best ``PD`` fraction) shrink by ``exp(-i / (alpha T))`` when the alarm
   value R2 < ST, else take a normal step ``Q L`` (Eq. 3);
 * scroungers of rank i > n/2 are starving and fly to ``Q exp((X_worst - X_i) / i^2)`` (or,
-  by default, anywhere in the box), the others forage around the best new producer X_P with
-  ``|X_i - X_P| A+ L`` (Eq. 4);
+  by default, to ``X_P + Q s``, a normal step scaled by the flock's spread ``s`` around the
+  best new producer X_P), the others forage around X_P with ``|X_i - X_P| A+ L`` (Eq. 4);
 * a random ``SD`` fraction is danger-aware: a sparrow that is not the best jumps to
   ``X_best + beta |X_i - X_best|``, the best one moves by
   ``K |X_i - X_worst| / (|f_i - f_w| + eps)`` (Eq. 5);
@@ -48,8 +48,10 @@ class SSAHyperparameters:
     ST: safety threshold; producers shrink while the alarm value R2 ~ U(0, 1) is below it.
     coordinates: 'unit_box' runs the formulas in box coordinates mapped to [-1, 1]^d (origin
         = box centre, unit = half width), 'raw' in the problem's own units (the paper).
-    starving: starving scroungers fly to a 'uniform' random point of the box, or to
-        Q exp((X_worst - X_i) / i^2), a point near the 'origin' (the paper; a centre bias).
+    starving: starving scroungers fly to X_P + Q s, a normal step around the best new
+        producer scaled by the flock's mean distance s from it per coordinate ('spread'),
+        to a 'uniform' random point of the box, or to Q exp((X_worst - X_i) / i^2), a point
+        near the 'origin' (the paper; a centre bias).
     producer_decay: exp(-i/(alpha T)) with 'rank' i (the paper) or 'iteration' t.
     shrink_towards: the producer shrink contracts towards the current 'best' or the
         'origin' (the paper; a centre bias).
@@ -65,7 +67,7 @@ class SSAHyperparameters:
     SD: float = 0.2
     ST: float = 0.8
     coordinates: Literal["unit_box", "raw"] = "unit_box"
-    starving: Literal["uniform", "origin"] = "uniform"
+    starving: Literal["spread", "uniform", "origin"] = "spread"
     producer_decay: Literal["rank", "iteration"] = "rank"
     shrink_towards: Literal["best", "origin"] = "best"
     step_direction: Literal["per_dimension", "diagonal"] = "per_dimension"
@@ -160,7 +162,10 @@ def _scroungers(
     starving = ranks > n / 2.0
     moved = np.empty_like(u)
     hungry = u[starving]
-    if hp.starving == "uniform":
+    if hp.starving == "spread":
+        spread = np.abs(u - producer_best).mean(axis=0)
+        moved[starving] = producer_best + rng.standard_normal(hungry.shape) * spread
+    elif hp.starving == "uniform":
         moved[starving] = rng.uniform(frame.lower, frame.upper, size=hungry.shape)
     else:
         q = _coefficients(rng, len(hungry), d, per_dimension, "normal")

@@ -356,6 +356,26 @@ def test_centre_bias_probe(name, record_property):
         assert bias < 10.0, f"{name} favours optima at the box centre (ratio {bias:.3g})"
 
 
+def _ill_conditioned_quadratic(seed: int) -> tuple[Callable, Callable]:
+    """``-(x - c)^T A (x - c)``: A's eigenvalues 1, 3, 9 (condition 9) along random axes,
+    the maximum 0 at a random ``c`` inside [-3, 3]^3; and its gradient."""
+    rng = np.random.default_rng(seed)
+    axes, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    a = axes @ np.diag([1.0, 3.0, 9.0]) @ axes.T
+    c = rng.uniform(-3.0, 3.0, 3)
+    return (lambda x: -float((x - c) @ a @ (x - c))), (lambda x: -2.0 * a @ (x - c))
+
+
+@pytest.mark.parametrize("name", optimizers.available())
+def test_every_registered_optimiser_climbs_an_ill_conditioned_quadratic(name):
+    """At its defaults, within 600 evaluations, 1e-2 of the maximum on five draws."""
+    bounds = np.array([[-5.0, 5.0]] * 3)
+    for seed in range(5):
+        fun, grad = _ill_conditioned_quadratic(seed)
+        result = optimizers.create(name).maximize(fun, bounds, grad=grad, max_evals=600, seed=seed)
+        assert result.value >= -1e-2, (seed, result.value)
+
+
 # 7. Gradients ------------------------------------------------------------------------------
 
 
