@@ -88,7 +88,11 @@ def score(recording: Recording, seg: Any, spatial: bool) -> dict[str, Any]:
     """The recording's scores under one matching (velocities for metric models only)."""
     truth = recording.ground_truth
     assert truth is not None  # drawn scenes carry ground truth
-    velocities = [spatial_velocities(w.clustering.thetas) for w in seg.windows]
+    velocities = []
+    for window in seg.windows:  # rows are object ids
+        rows = np.zeros((seg.n_objects, 3))
+        rows[window.ids] = spatial_velocities(window.clustering.thetas)
+        velocities.append(rows)
     return recording_metrics(
         seg.labels,
         truth.labels,

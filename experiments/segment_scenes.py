@@ -40,12 +40,12 @@ N_CLUSTERS = {"three": 3}
 
 
 def window_metrics(seg, gt, w: int, k: int, spatial: bool) -> dict:
-    """One window's accuracy, mean IoU and velocity errors (cluster ids are per window)."""
+    """One window's accuracy, mean IoU and velocity errors, its clusters matched within it."""
     res, index = seg.windows[w], seg.indices[w]
     thetas = np.zeros((k, 3))
     thetas[:, : res.clustering.thetas.shape[1]] = res.clustering.thetas
     return segmentation_metrics(
-        seg.labels[index],
+        res.labels,
         gt.labels[index],
         pred_velocities=thetas if spatial else None,
         true_motions=gt.motions if spatial else None,

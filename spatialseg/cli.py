@@ -110,7 +110,13 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
     """``scene.stream=true``: read, segment and write the file window by window, holding one
     window in memory; the outputs are those of any run except the figures and metrics."""
     from spatialseg.pipeline import segment_loaded
-    from spatialseg.results import ArrayStream, run_summary, window_summary, write_json
+    from spatialseg.results import (
+        ArrayStream,
+        ProbabilityStream,
+        run_summary,
+        window_summary,
+        write_json,
+    )
     from spatialseg.scenes import stream_scene
     from spatialseg.tracking import record
 
@@ -123,16 +129,16 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
     k = int(cfg.n_clusters)
     out_dir.mkdir(parents=True, exist_ok=True)
     labels = ArrayStream(out_dir / "labels.npy", np.int64)
-    probabilities = ArrayStream(out_dir / "probabilities.npy", np.float32, k)
-    optimizer, windows, previous = build_optimizer(cfg), [], None
+    probabilities = ProbabilityStream(out_dir / "probabilities.npy", k)
+    optimizer, windows, handover = build_optimizer(cfg), [], None
     try:
         stream = stream_scene(plain["scene"], window_events=int(cfg.window.events))
         for w, window in enumerate(stream):
             seed = int(np.random.default_rng([int(cfg.seed), w]).integers(2**31 - 1))
-            _, seg = segment_loaded(window, plain, optimizer, seed=seed, previous=previous)
-            previous = seg.windows[-1].clustering.thetas
+            _, seg = segment_loaded(window, plain, optimizer, seed=seed, handover=handover)
+            handover = seg.handover or handover
             labels.append(seg.labels)
-            probabilities.append(seg.probabilities)
+            probabilities.append_segmentation(seg)
             windows += [window_summary(res, None, None) for res in seg.windows]
             elapsed = time.perf_counter() - start
             log.info("window %d: %d events, %.1f s", w, len(window.events), elapsed)
@@ -146,7 +152,7 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
     summary = run_summary(str(cfg.scene.name), labels.rows, plain, windows, timings)
     summary["stream"] = True
     labels.finish()
-    probabilities.finish()
+    probabilities.finish_objects(handover.boundary.next_id if handover else k)
     write_json(out_dir / "result.json", summary)
     record(cfg, summary, out_dir)
     _report(summary, out_dir)

@@ -28,11 +28,13 @@ from spatialseg.clustering import (
     p_step,
 )
 from spatialseg.grid import VoxelGrid, grid_around, project_jacobian
+from spatialseg.identities import Boundary, boundary, link_clusters
 from spatialseg.objectives import make_objective
 from spatialseg.recording import Camera, Recording, check_window_context
 from spatialseg.volume import VolumeObjective, check_p_step_blur
 
 __all__ = [
+    "Handover",
     "Prepared",
     "SegmentationResult",
     "WindowResult",
@@ -101,16 +103,34 @@ class WindowResult:
     timings: dict[str, float]
     init_fallback: bool
     init_method: str = ""  # the start kept (init.method, or the one init.method=auto chose)
+    ids: np.ndarray | None = None  # the object id of each cluster (segment_recording links)
+
+
+@dataclass(frozen=True, eq=False)
+class Handover:
+    """What a recording's last window hands the next chunk of a stream: its final
+    velocities (the ``previous`` start) and its last events with their object ids."""
+
+    velocities: np.ndarray
+    boundary: Boundary
 
 
 @dataclass(frozen=True, eq=False)
 class SegmentationResult:
-    """All windows of a recording; ``labels``/``probabilities`` cover every event in order."""
+    """All windows of a recording; ``labels`` (object ids, one identity per object across
+    the windows; -1 unassigned) and ``probabilities`` (N x objects, column = object id)
+    cover every event in order; ``handover`` continues the recording in a next chunk."""
 
     labels: np.ndarray
     probabilities: np.ndarray
     windows: list[WindowResult] = field(default_factory=list)
     indices: list[np.ndarray] = field(default_factory=list)
+    handover: Handover | None = None
+
+    @property
+    def n_objects(self) -> int:
+        """Object ids in use (0 .. n_objects - 1; a stream's earlier chunks count)."""
+        return self.probabilities.shape[1]
 
 
 class ModelEvaluator:
@@ -940,7 +960,7 @@ def segment_recording(
     *,
     seed: int,
     on_iteration: Any = None,
-    previous: np.ndarray | None = None,
+    handover: Handover | None = None,
 ) -> SegmentationResult:
     """Segment every window (each pair of consecutive depth maps); labels cover all events.
 
@@ -949,18 +969,23 @@ def segment_recording(
     keeps the labels of its own events. Decision: a longer span pins the velocities down
     (a moving camera's static scene) while each event is still labelled once, by the span
     centred on its window (docs/method.md, "Context windows"). Each window after the first
-    is handed the one before's final velocities (the ``previous`` start of ``init.auto``);
-    ``previous`` is the first window's (a stream's preceding chunk), None: none.
+    is handed the one before's final velocities (the ``previous`` start of ``init.auto``),
+    and its clusters are linked to the objects of the window before
+    (:func:`spatialseg.identities.link_clusters`), so an object keeps one id;
+    ``handover`` continues a stream's previous chunk (None: a recording's start).
     Events outside every window (before the first or after the last depth map) are -1.
     """
     k = int(cfg["n_clusters"])
     n = len(recording.events)
     labels = np.full(n, -1, dtype=np.int64)
-    probabilities = np.zeros((n, max(k, 1)), dtype=np.float32)
     results, indices = [], []
     seeds = np.random.default_rng(seed).integers(
         0, 2**31 - 1, size=max(len(recording.depth_maps), 1)
     )
+    previous = None if handover is None else handover.velocities
+    edge = None if handover is None else handover.boundary
+    next_id = k if edge is None else edge.next_id
+    xy = np.column_stack([recording.events.x, recording.events.y])
     spans = recording.spans(cfg["window"]["context"])
     for w, (index, span, inner) in enumerate(spans):
         extra = f" ({len(span.events)} with its context)" if len(span.events) > len(index) else ""
@@ -974,12 +999,18 @@ def segment_recording(
             previous=previous,
         )
         previous = res.clustering.thetas
-        res = replace(res, labels=res.labels[inner], probabilities=res.probabilities[inner])
-        labels[index] = res.labels
-        probabilities[index] = res.probabilities
+        own = res.labels[inner]
+        ids, next_id = link_clusters(edge, xy[index], own, k)
+        res = replace(res, labels=own, probabilities=res.probabilities[inner], ids=ids)
+        labels[index] = np.where(own >= 0, ids[np.maximum(own, 0)], -1)
+        edge = boundary(xy[index], labels[index], next_id)
         results.append(res)
         indices.append(index)
-    return SegmentationResult(labels, probabilities, results, indices)
+    probabilities = np.zeros((n, max(next_id, 1)), dtype=np.float32)
+    for res, index in zip(results, indices, strict=True):
+        probabilities[index[:, None], res.ids[None, :]] = res.probabilities
+    carry = None if edge is None or previous is None else Handover(previous, edge)
+    return SegmentationResult(labels, probabilities, results, indices, carry)
 
 
 def with_dropped_events(seg: SegmentationResult, keep: np.ndarray | None) -> SegmentationResult:
@@ -992,7 +1023,8 @@ def with_dropped_events(seg: SegmentationResult, keep: np.ndarray | None) -> Seg
     labels[kept] = seg.labels
     probabilities = np.zeros((keep.shape[0], seg.probabilities.shape[1]), dtype=np.float32)
     probabilities[kept] = seg.probabilities
-    return SegmentationResult(labels, probabilities, seg.windows, [kept[i] for i in seg.indices])
+    indices = [kept[i] for i in seg.indices]
+    return SegmentationResult(labels, probabilities, seg.windows, indices, seg.handover)
 
 
 def segment_loaded(
@@ -1002,18 +1034,18 @@ def segment_loaded(
     *,
     seed: int,
     on_iteration: Any = None,
-    previous: np.ndarray | None = None,
+    handover: Handover | None = None,
 ) -> tuple[Recording, SegmentationResult]:
     """A loaded recording through the ``denoise`` filter, the ``depth`` source and
-    :func:`segment_recording` (``previous``: velocities for its first window's ``previous``
-    start); the result covers every input event (dropped ones -1). Also returns the
-    recording the result describes: the input with the depth maps used."""
+    :func:`segment_recording` (``handover``: a stream's previous chunk); the result covers
+    every input event (dropped ones -1). Also returns the recording the result describes:
+    the input with the depth maps used."""
     from spatialseg.depth import denoised, with_configured_depth
 
     kept, keep = denoised(recording, cfg)
     kept = with_configured_depth(kept, cfg)
     seg = segment_recording(
-        kept, cfg, optimizer, seed=seed, on_iteration=on_iteration, previous=previous
+        kept, cfg, optimizer, seed=seed, on_iteration=on_iteration, handover=handover
     )
     if keep is None:
         return kept, seg

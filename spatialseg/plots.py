@@ -129,10 +129,10 @@ def _save(fig: Figure, path: Path) -> Path:
 
 
 def save_result_figures(out_dir: Path, recording: Recording, seg: SegmentationResult) -> list[Path]:
-    """Write the run's figures: events by cluster (all, and per window when there are several:
-    cluster ids are per window), and per window the volume warped by each cluster's motion
-    (one object sharp, the others blurred) and the contrast/theta curves."""
-    k = max(len(w.clustering.thetas) for w in seg.windows)
+    """Write the run's figures: events by object (all, and per window when there are
+    several; one colour per object id throughout), and per window the volume warped by each
+    cluster's motion (one object sharp, the others blurred) and the contrast/theta curves."""
+    k = seg.n_objects
     paths = [_save_clusters(out_dir / "clusters.png", recording, seg.labels, k, recording.name)]
     for w, window in enumerate(seg.windows):
         suffix = f"_w{w}" if len(seg.windows) > 1 else ""
@@ -154,6 +154,11 @@ def _save_clusters(path: Path, recording: Recording, labels: np.ndarray, k: int,
     return _save(fig, path)
 
 
+def _object_id(window: WindowResult, cluster: int) -> int:
+    """The object id of a window's cluster (the cluster index before linking)."""
+    return cluster if window.ids is None else int(window.ids[cluster])
+
+
 def _window_figures(out_dir: Path, window: WindowResult, suffix: str) -> list[Path]:
     """The warped-volume panels and the contrast and theta curves of one window."""
     c, units = window.clustering, window.prepared.units
@@ -164,7 +169,7 @@ def _window_figures(out_dir: Path, window: WindowResult, suffix: str) -> list[Pa
     ):
         ax.imshow(image, cmap="gray_r", interpolation="nearest", origin="upper")
         theta = ", ".join(f"{v:+.3f}" for v in c.thetas[j])
-        ax.set_title(f"warped by cluster {j}: [{theta}] {units}")
+        ax.set_title(f"warped by object {_object_id(window, j)}: [{theta}] {units}")
     paths = [_save(fig, out_dir / f"warped_volumes{suffix}.png")]
 
     iterations = [r.iteration for r in c.history]
@@ -173,7 +178,8 @@ def _window_figures(out_dir: Path, window: WindowResult, suffix: str) -> list[Pa
     per_cluster = np.array([r.per_cluster for r in c.history])
     colours = _cluster_colours(per_cluster.shape[1])
     for j in range(per_cluster.shape[1]):
-        ax.plot(iterations, per_cluster[:, j], "o-", color=colours[j], label=f"cluster {j}")
+        label = f"object {_object_id(window, j)}"
+        ax.plot(iterations, per_cluster[:, j], "o-", color=colours[j], label=label)
     ax.set(
         xlabel="iteration", ylabel="contrast (variance of the VWE)", title="contrast per cluster"
     )
@@ -184,7 +190,8 @@ def _window_figures(out_dir: Path, window: WindowResult, suffix: str) -> list[Pa
     fig = Figure(figsize=(4 * thetas.shape[2], 3.6), layout="constrained")
     for a, ax in enumerate(np.atleast_1d(fig.subplots(1, thetas.shape[2]))):
         for j in range(thetas.shape[1]):
-            ax.plot(iterations, thetas[:, j, a], "o-", color=colours[j], label=f"cluster {j}")
+            label = f"object {_object_id(window, j)}"
+            ax.plot(iterations, thetas[:, j, a], "o-", color=colours[j], label=label)
         ax.set(xlabel="iteration", ylabel=f"theta_{'xyz'[a]} ({units})")
     ax.legend()
     paths.append(_save(fig, out_dir / f"theta{suffix}.png"))

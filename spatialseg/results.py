@@ -21,6 +21,7 @@ from spatialseg.recording import Recording
 
 __all__ = [
     "ArrayStream",
+    "ProbabilityStream",
     "run_summary",
     "summarise",
     "window_summary",
@@ -34,12 +35,14 @@ def window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) ->
     c = res.clustering
     counts = np.bincount(res.labels[res.labels >= 0], minlength=c.thetas.shape[0])
     thetas = spatial_velocities(c.thetas)
+    ids = np.arange(len(thetas)) if res.ids is None else res.ids
     summary: dict[str, Any] = {
         "n_events": int(res.labels.size),
         "n_unassigned": int(np.sum(res.labels < 0)),
         "clusters": [
             {
-                "id": j,
+                "id": int(ids[j]),
+                "cluster": j,
                 "theta": thetas[j].tolist(),
                 "variance": float(c.values[j]),
                 "n_events": int(counts[j]),
@@ -66,7 +69,7 @@ def window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) ->
         velocities = thetas if res.prepared.units == "m/s" else None
         summary["metrics"] = segmentation_metrics(
             res.labels, truth, pred_velocities=velocities, true_motions=motions
-        )
+        )  # the window's own clusters, matched within the window
     return summary
 
 
@@ -168,8 +171,13 @@ class ArrayStream:
 
     def finish(self) -> Path:
         """Write the ``.npy`` from the appended rows and remove the temporary file."""
+        return self._write(self.width, lambda raw, f: shutil.copyfileobj(raw, f, 1 << 20))
+
+    def _write(self, width: int | None, copy: Any) -> Path:
+        """Close the temporary file and write the ``.npy`` of ``rows x width`` (``rows``
+        alone for None), its body from ``copy(raw file, output file)``."""
         self._raw.close()
-        shape = (self.rows,) if self.width is None else (self.rows, self.width)
+        shape = (self.rows,) if width is None else (self.rows, width)
         header = {
             "descr": np.lib.format.dtype_to_descr(self.dtype),
             "fortran_order": False,
@@ -179,8 +187,48 @@ class ArrayStream:
         def write(f: Any) -> None:
             np.lib.format.write_array_header_1_0(f, header)
             with open(self._raw_path, "rb") as raw:
-                shutil.copyfileobj(raw, f, 1 << 20)
+                copy(raw, f)
 
         _atomic_save(self.path, write)
         self._raw_path.unlink()
         return self.path
+
+
+class ProbabilityStream(ArrayStream):
+    """Memberships appended window by window (rows x the window's clusters) with each
+    cluster's object id, written at the end as one ``rows x objects`` ``.npy`` (column =
+    object id), one window in memory at a time."""
+
+    def __init__(self, path: Path, k: int) -> None:
+        super().__init__(path, np.float32, k)
+        self._blocks: list[tuple[int, np.ndarray]] = []
+
+    def append_window(self, rows: np.ndarray, ids: np.ndarray) -> None:
+        """Append one window's memberships and its clusters' object ids."""
+        self.append(rows)
+        self._blocks.append((len(rows), np.asarray(ids)))
+
+    def append_segmentation(self, seg: SegmentationResult) -> None:
+        """Append every event of ``seg`` in order: each window's memberships, zeros for
+        events outside every window."""
+        done = 0
+        for res, index in zip(seg.windows, seg.indices, strict=True):
+            if len(index) and index[0] > done:
+                self.append_window(np.zeros((index[0] - done, self.width)), np.arange(self.width))
+            self.append_window(seg.probabilities[index][:, res.ids], res.ids)
+            done = index[-1] + 1 if len(index) else done
+        if len(seg.labels) > done:
+            rest = len(seg.labels) - done
+            self.append_window(np.zeros((rest, self.width)), np.arange(self.width))
+
+    def finish_objects(self, n_objects: int) -> Path:
+        """Write the ``.npy`` with one column per object id."""
+
+        def copy(raw: Any, f: Any) -> None:
+            for count, ids in self._blocks:
+                block = np.fromfile(raw, self.dtype, count * self.width).reshape(count, -1)
+                out = np.zeros((count, n_objects), self.dtype)
+                out[:, ids] = block
+                f.write(out.tobytes())
+
+        return self._write(n_objects, copy)

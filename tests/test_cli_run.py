@@ -139,8 +139,12 @@ def test_streamed_run_segments_window_by_window(recording_dir, tmp_path):
     assert sizes == expected
     # each window after the first also starts from the velocities the one before ended with
     assert (out / "cli.log").read_text().count("start previous:") == len(sizes) - 1
-    assert np.load(out / "labels.npy").shape == (n,)
-    assert np.load(out / "probabilities.npy").shape == (n, 2)
+    labels, probabilities = np.load(out / "labels.npy"), np.load(out / "probabilities.npy")
+    assert labels.shape == (n,) and probabilities.shape == (n, max(labels.max() + 1, 2))
+    known = labels >= 0  # one column per object id, linked across the streamed windows
+    np.testing.assert_array_equal(probabilities[known].argmax(axis=1), labels[known])
+    ids = {c["id"] for w in result["windows"] for c in w["clusters"]}
+    assert ids == set(range(probabilities.shape[1]))
     assert not list(out.glob(".*.raw"))
     bad = spatialseg(*common, "scene.fov_deg=60", f"hydra.run.dir={tmp_path / 'bad'}", cwd=tmp_path)
     assert bad.returncode == 2 and "use depth=constant or depth=ground_plane" in bad.stderr
