@@ -5,10 +5,12 @@ before. An object's events at the end of one window and at the start of the next
 nearly the same pixels (it moves a pixel or two in between), so the link is the overlap
 of the two windows' boundary events: for each of the new window's first events, the
 object of the nearest of the previous window's last events within ``radius`` pixels
-votes; the Hungarian assignment of clusters to objects maximises the votes. A cluster
-that too few of its boundary events vote for any free object (an object entering) gets a
-new id; an object left without a cluster (one that stopped or left) keeps its id retired,
-and no id is ever reused.
+votes; the Hungarian assignment of clusters to objects maximises the number of agreeing
+events (not their shares: a cluster of a hundred events all on an object must not take
+its id from the cluster of thousands that continues it). A cluster with too small a
+share of its boundary events voting for the object it is assigned (an object entering)
+gets a new id; an object left without a cluster (one that stopped or left) keeps its id
+retired, and no id is ever reused.
 """
 
 from __future__ import annotations
@@ -68,11 +70,13 @@ def link_clusters(
     if previous is None:
         return np.arange(k), k
     head = slice(0, _count(len(labels)))
-    votes = _votes(previous, np.asarray(xy, float)[head], np.asarray(labels)[head], k)
+    mine = np.asarray(labels)[head]
+    votes = _votes(previous, np.asarray(xy, float)[head], mine, k)
+    share = votes / np.maximum(np.bincount(mine[mine >= 0], minlength=k), 1)[:, None]
     ids = np.full(k, -1, dtype=np.int64)
     rows, cols = linear_sum_assignment(votes, maximize=True)
     for cluster, obj in zip(rows, cols, strict=True):
-        if votes[cluster, obj] >= MIN_VOTES:
+        if share[cluster, obj] >= MIN_VOTES:
             ids[cluster] = obj
     next_id = previous.next_id
     for cluster in np.flatnonzero(ids < 0):
@@ -81,8 +85,8 @@ def link_clusters(
 
 
 def _votes(previous: Boundary, xy: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
-    """Share of each cluster's boundary events whose nearest previous boundary event within
-    :data:`RADIUS` px belongs to each object (k x previous.next_id)."""
+    """How many of each cluster's boundary events have their nearest previous boundary event
+    within :data:`RADIUS` px on each object (k x previous.next_id)."""
     votes = np.zeros((k, max(previous.next_id, 1)))
     known = previous.ids >= 0
     mine = labels >= 0
@@ -91,5 +95,4 @@ def _votes(previous: Boundary, xy: np.ndarray, labels: np.ndarray, k: int) -> np
     distance, nearest = cKDTree(previous.xy[known]).query(xy[mine], distance_upper_bound=RADIUS)
     close = np.isfinite(distance)
     np.add.at(votes, (labels[mine][close], previous.ids[known][nearest[close]]), 1.0)
-    sizes = np.bincount(labels[mine], minlength=k)[:, None]
-    return votes / np.maximum(sizes, 1)
+    return votes

@@ -50,6 +50,19 @@ def test_an_entering_object_gets_a_new_id_and_a_leaving_one_keeps_its_id_retired
     assert ids.tolist() == [3, 2]
 
 
+def test_a_large_cluster_keeps_its_object_s_id_against_a_few_events_on_it():
+    """Votes are counted, not shared: a 30-event cluster wholly on object 0 does not take
+    the id of object 0 from the cluster of thousands that continues it."""
+    xy, objects = _blobs([(20, 20), (80, 40)], [0, 1])
+    edge = boundary(xy, objects, next_id=2)
+    xy2, clusters = _blobs([(20, 20), (80, 40)], [0, 1], n=600)
+    every = np.arange(len(clusters))
+    clusters[(clusters == 0) & (every % 50 == 0)] = 2  # a sliver of object 0, all on it
+    clusters[(clusters == 1) & (every % 5 == 0)] = 0  # cluster 0 also holds some of 1
+    ids, _ = link_clusters(edge, xy2, clusters, 3)
+    assert ids[:2].tolist() == [0, 1] and ids[2] == 2
+
+
 def _config(*overrides: str) -> dict:
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
         cfg = compose(
