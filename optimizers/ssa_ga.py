@@ -31,8 +31,11 @@ class SSAGradientAscentHyperparameters(AscentHyperparameters, SSAHyperparameters
     refine: 'each_generation' or 'end' (see the module docstring).
     refine_steps: ascent steps given to the best sparrow per generation ('each_generation').
     refine_fraction: share of the budget kept for the final ascent ('end'), in [0, 1).
+    starving: SSA's, but 'uniform' by default: the ascent refines the best sparrow, so the
+        flock keeps re-sampling the box (the paper's optimiser as measured in Table 1).
     """
 
+    starving: Literal["spread", "uniform", "origin"] = "uniform"
     line_search: bool = True
     refine: Literal["each_generation", "end"] = "each_generation"
     refine_steps: int = 3
