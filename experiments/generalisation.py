@@ -3,7 +3,7 @@
     python experiments/generalisation.py --split dev|heldout --per-family N
         [--models spatial planar spatial:clustering.max_iterations=10]
         [--families opposite many ...] [--json OUT] [--jobs J] [--cache DIR]
-        [--fix depth_flicker=0.1 ...]
+        [--fix depth_flicker=0.1 ...] [--resume]
 
 Seeds of ``dev`` are 0-999, those of ``heldout`` 1000 and above: choose defaults on
 ``dev`` only, report both. Each scene is drawn from its family and seed
@@ -16,7 +16,8 @@ consistent across windows) and, beside it, each window matched alone; mean IoU; 
 relative velocity error (metric models); the share of signal events left unassigned; the
 segmentation's wall time on one thread (``--jobs`` scenes run side by side). ``--fix``
 sets a modifier for every scene instead of drawing it (``depth_bias``, ``depth_flicker``,
-``holes``, ``noise``).
+``holes``, ``noise``). The JSON is rewritten after every scene; ``--resume`` skips the
+scenes it already holds (a killed run goes on where it stopped).
 
 Prints a Markdown table per family and model: accuracy mean, 10th percentile and worst seed,
 the per-window-matched accuracy, mean IoU, velocity error, unassigned share and time. The
@@ -216,39 +217,57 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1)
     parser.add_argument("--cache", type=Path, default=None)
     parser.add_argument("--fix", nargs="*", default=[])
+    parser.add_argument("--resume", action="store_true", help="skip the scenes --json holds")
     args = parser.parse_args()
+    if args.per_family < 1 or args.jobs < 1:
+        parser.error("--per-family and --jobs must be >= 1")
+    if args.resume and args.json is None:
+        parser.error("--resume needs --json, the file to resume")
     try:
         seeds = split_seeds(args.split, args.per_family)
         fixed = _fixed_modifiers(args.fix)
+        rows = resumed_rows(args.json, args.split, fixed) if args.resume else []
     except ValueError as exc:
         parser.error(str(exc))
-    if args.per_family < 1 or args.jobs < 1:
-        parser.error("--per-family and --jobs must be >= 1")
     if args.cache is not None:
         args.cache.mkdir(parents=True, exist_ok=True)
-    tasks = [(f, s, args.models, fixed, args.cache) for f in args.families for s in seeds]
-    rows: list[dict[str, Any]] = []
+    done = {(r["family"], r["seed"]) for r in rows}
+    tasks = [
+        (f, s, args.models, fixed, args.cache)
+        for f in args.families
+        for s in seeds
+        if (f, s) not in done
+    ]
     spawn = multiprocessing.get_context("spawn")  # no fork of a process running OpenMP
     with ProcessPoolExecutor(args.jobs, mp_context=spawn, initializer=one_thread) as pool:
         if args.jobs == 1:
             one_thread()
         results = pool.map(run_scene, tasks) if args.jobs > 1 else map(run_scene, tasks)
-        for done, scene_rows in enumerate(results, start=1):
+        for count, scene_rows in enumerate(results, start=1):
             rows.extend(scene_rows)
             scores = ", ".join(f"{r['model']} {r['accuracy']:.3f}" for r in scene_rows)
             first = scene_rows[0]
             print(
-                f"[{done}/{len(tasks)}] {first['family']}-{first['seed']}: {scores} "
+                f"[{count}/{len(tasks)}] {first['family']}-{first['seed']}: {scores} "
                 f"({first['n_events']} events)",
                 file=sys.stderr,
                 flush=True,
             )
-    if args.json is not None:
-        write_json(
-            args.json,
-            {"split": args.split, "per_family": args.per_family, "fixed": fixed, "rows": rows},
-        )
+            if args.json is not None:  # after every scene: a crash keeps what is done
+                payload = {"split": args.split, "fixed": fixed, "rows": rows}
+                write_json(args.json, payload)
     print(table(rows, args.models))
+
+
+def resumed_rows(path: Path | None, split: str, fixed: dict) -> list[dict[str, Any]]:
+    """The rows an earlier run of the same split and modifiers wrote to ``path`` (none if
+    there is no such file)."""
+    if path is None or not path.exists():
+        return []
+    earlier = json.loads(path.read_text())
+    if earlier.get("split") != split or earlier.get("fixed") != fixed:
+        raise ValueError(f"--resume: {path} holds another split or other --fix settings")
+    return earlier["rows"]
 
 
 if __name__ == "__main__":
