@@ -31,7 +31,7 @@ import numpy as np
 from _common import compose_config
 from omegaconf import OmegaConf
 
-from spatialseg.depth import prepare_recording
+from spatialseg.depth import with_configured_depth
 from spatialseg.figures import paper_figure, save_figure, warped_images
 from spatialseg.pipeline import prepare
 from spatialseg.plots import cluster_image, event_image
@@ -117,7 +117,7 @@ def scene_figure(scene: str, job: dict[str, Any]) -> Any:
     )
     # The run's own preparation (denoising, depth source), so labels.npy lines up, and its
     # first window's span (the window with its window.context neighbours), as clustered.
-    recording = prepare_recording(recording, cfg)
+    recording = with_configured_depth(recording, cfg)
     index, span, inner = next(iter(recording.spans(int(cfg["window"]["context"]))))
     window = span.select(inner)
     prepared = prepare(span, cfg)

@@ -45,7 +45,7 @@ def build_optimizer(cfg: DictConfig) -> Any:
 def _report(summary: dict[str, Any], out_dir: Path) -> None:
     """Log the short end-of-run summary: clusters, velocities, accuracy, time."""
     log.info(
-        "%s: %d events, %d clusters, %d iterations (%s)",
+        "%s: %d events, n_clusters=%s, %d iterations (%s)",
         summary["scene"],
         summary["n_events"],
         summary["n_clusters"],
@@ -126,10 +126,9 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
             f"scene.stream=true makes depth maps per window without images: use "
             f"depth=constant or depth=ground_plane, not depth={plain['depth']['name']}"
         )
-    k = int(cfg.n_clusters)
     out_dir.mkdir(parents=True, exist_ok=True)
     labels = ArrayStream(out_dir / "labels.npy", np.int64)
-    probabilities = ProbabilityStream(out_dir / "probabilities.npy", k)
+    probabilities = ProbabilityStream(out_dir / "probabilities.npy")
     optimizer, windows, handover = build_optimizer(cfg), [], None
     try:
         stream = stream_scene(plain["scene"], window_events=int(cfg.window.events))
@@ -152,7 +151,7 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
     summary = run_summary(str(cfg.scene.name), labels.rows, plain, windows, timings)
     summary["stream"] = True
     labels.finish()
-    probabilities.finish_objects(handover.boundary.next_id if handover else k)
+    probabilities.finish_objects(handover.boundary.next_id if handover else 1)
     write_json(out_dir / "result.json", summary)
     record(cfg, summary, out_dir)
     _report(summary, out_dir)

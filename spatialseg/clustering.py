@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -28,12 +28,18 @@ __all__ = [
     "ClusteringResult",
     "ConvergenceRules",
     "IterationRecord",
+    "Repair",
     "StepStage",
+    "cluster_responses",
+    "grow_clusters",
     "initial_memberships",
     "iterative_clustering",
     "maximize_contrast",
     "p_step",
+    "repair_clusters",
     "update_memberships",
+    "weak_cluster",
+    "worst_explained",
 ]
 
 log = logging.getLogger(__name__)
@@ -115,11 +121,28 @@ class ClusteringResult:
     history: list[IterationRecord] = field(default_factory=list)
     converged: bool = False
     reason: str = ""
+    repairs: int = 0  # clusters re-seeded by repair_clusters
 
     @property
     def iterations(self) -> int:
         """Number of outer iterations run."""
         return len(self.history)
+
+    @property
+    def total(self) -> float:
+        """The joint objective at the end: the sum of the clusters' contrasts."""
+        return float(np.sum(self.values))
+
+    @property
+    def sharpness(self) -> float:
+        """The clusters' contrasts per squared membership mass, averaged over the events
+        (``sum_j values_j / (N mass_j)``): unchanged when a cluster splits into two alike
+        halves of one motion, so it compares segmentations with different numbers of
+        clusters, where the sum of contrasts (quadratic in the mass) favours fewer."""
+        mass = self.probabilities.sum(axis=0)
+        used = mass > 0
+        n = max(len(self.probabilities), 1)
+        return float(np.sum(self.values[used] / mass[used]) / n)
 
 
 def update_memberships(responses: np.ndarray) -> np.ndarray:
@@ -159,10 +182,12 @@ def initial_memberships(
         return uniform
     if mode != "flow":
         raise ValueError(f"clustering.init_memberships must be 'uniform' or 'flow', got {mode!r}")
+    if k == 1:
+        return uniform
     if not 1.0 / k <= confidence <= 1.0:
         raise ValueError(f"clustering.init_confidence must be in [1/K, 1], got {confidence}")
     known = labels >= 0
-    if k == 1 or not known.any():
+    if not known.any():
         return uniform
     tree = cKDTree(points[known] / scale)
     nearest = labels[known][tree.query(points / scale)[1]]
@@ -238,7 +263,7 @@ def p_step(
     ``prior_weight`` (N,) in [0, 1]: each event's responses are multiplied by the clusters'
     shares (mean memberships) raised to it, a prior on the cluster sizes where the warps
     say little (0 or None: none, the paper's P-step)."""
-    responses = _responses(evaluator, thetas, p, sigma, stride)[0]
+    responses = cluster_responses(evaluator, thetas, p, sigma, stride)[0]
     if prior_weight is not None:
         weight = np.asarray(prior_weight, dtype=np.float64)
         if weight.shape != (len(p),) or not np.all((weight >= 0) & (weight <= 1)):
@@ -247,7 +272,7 @@ def p_step(
     return update_memberships(responses)
 
 
-def _responses(
+def cluster_responses(
     evaluator: ClusterEvaluator,
     thetas: np.ndarray,
     p: np.ndarray,
@@ -316,7 +341,7 @@ def iterative_clustering(
                     stage.evaluator, stage.optimizer, thetas[j], bounds, stage.budget, seed_j
                 )
                 evals += n
-        responses, values = _responses(evaluator, thetas, p, p_step_sigma, p_step_stride)
+        responses, values = cluster_responses(evaluator, thetas, p, p_step_sigma, p_step_stride)
         p = update_memberships(responses)
         previous, labels = labels, p.argmax(axis=1)
         changed = float(np.mean(labels != previous)) if n_events else 0.0
@@ -332,3 +357,200 @@ def iterative_clustering(
     if not converged:
         reason = f"iteration limit {rules.max_iterations} reached"
     return ClusteringResult(thetas, p, values.copy(), history, converged, reason)
+
+
+@dataclass(frozen=True)
+class Repair:
+    """What :func:`repair_clusters` needs of a window beyond the loop.
+
+    ``run(thetas, p, seed)``: the loop from velocities and memberships; ``responses(thetas,
+    p)``: each event's P-step response to each cluster (N x K); ``fit(events, seed)``: the
+    motion of those events alone (a local estimate, e.g. their flows: maximising the
+    contrast of a small group collapses it); ``separation(a, b)``: how far apart (voxels) two
+    velocities move the events over the window; ``xy``: the events' image positions (N x 2).
+    A cluster holding under ``min_share`` of the memberships is empty; two whose motions
+    move the events less than a voxel apart are one.
+    """
+
+    run: Callable[[np.ndarray, np.ndarray, int], ClusteringResult]
+    responses: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    fit: Callable[[np.ndarray, int], np.ndarray]
+    separation: Callable[[np.ndarray, np.ndarray], float]
+    xy: np.ndarray
+    min_share: float = 0.01
+
+
+#: Pixels of the image tiles a poorly explained group is gathered in (with its 8 neighbours).
+REPAIR_TILE = 16.0
+#: An event is poorly explained when its own cluster responds to it with less than this
+#: share of the cluster's 90th-percentile response (it is blurred under that motion).
+POOR_RESPONSE = 0.3
+#: A group needs this many poorly explained events to seed a motion.
+MIN_GROUP = 30
+#: P-steps with equal priors that grow a re-seeded motion's events from its group.
+RESEED_STEPS = 3
+
+
+def weak_cluster(thetas: np.ndarray, p: np.ndarray, repair: Repair) -> int | None:
+    """A cluster that wastes its slot: the smaller of two whose motions coincide (less than
+    a voxel apart), else one that is the likeliest for under ``min_share`` of the events;
+    None if none. (Mean memberships hide a collapse: an empty cluster keeps a few percent of
+    every event's membership.)"""
+    shares = np.bincount(p.argmax(axis=1), minlength=p.shape[1]) / max(len(p), 1)
+    for j in range(len(thetas)):
+        for k in range(j + 1, len(thetas)):
+            if repair.separation(thetas[j], thetas[k]) < 1.0:
+                return j if shares[j] < shares[k] else k
+    smallest = int(np.argmin(shares))
+    return smallest if shares[smallest] < repair.min_share else None
+
+
+def worst_explained(responses: np.ndarray, p: np.ndarray, xy: np.ndarray) -> np.ndarray | None:
+    """The largest spatially coherent group of poorly explained events: those whose own
+    cluster responds with under :data:`POOR_RESPONSE` of its 90th-percentile response,
+    gathered in the image tile holding most of them and its 8 neighbours (event indices);
+    None when fewer than :data:`MIN_GROUP`."""
+    labels = p.argmax(axis=1)
+    own = responses[np.arange(len(labels)), labels]
+    reference = np.zeros(p.shape[1])
+    for j in range(p.shape[1]):
+        mine = own[labels == j]
+        reference[j] = np.percentile(mine, 90) if len(mine) else 0.0
+    poor = np.flatnonzero(own < POOR_RESPONSE * reference[labels])
+    if len(poor) < MIN_GROUP:
+        return None
+    cells = np.floor(xy[poor] / REPAIR_TILE).astype(np.int64)
+    found, counts = np.unique(cells, axis=0, return_counts=True)
+    centre = found[np.argmax(counts)]
+    group = poor[np.all(np.abs(cells - centre) <= 1, axis=1)]
+    return group if len(group) >= MIN_GROUP else None
+
+
+def _reseeded(
+    p: np.ndarray, slot: int, group: np.ndarray, thetas: np.ndarray, repair: Repair
+) -> np.ndarray:
+    """Memberships after re-seeding ``slot`` with ``group``'s motion: the slot's volume built
+    from the group alone, the others from their events, each event then goes to the motions
+    by their volumes per unit of membership (equal priors), so the new motion takes every
+    event it explains better than the cluster holding it, not only the group."""
+    seeded = p.copy()
+    seeded[:, slot] = 0.0
+    seeded /= np.maximum(seeded.sum(axis=1, keepdims=True), 1e-300)
+    seeded[group] = 0.0
+    seeded[group, slot] = 1.0
+    for _ in range(RESEED_STEPS):  # the new motion's events grow from the group outwards
+        mass = np.maximum(seeded.sum(axis=0), 1e-300)
+        seeded = update_memberships(repair.responses(thetas, seeded) / mass)
+    return seeded
+
+
+def repair_clusters(
+    result: ClusteringResult, repair: Repair, *, seed: int, attempts: int
+) -> ClusteringResult:
+    """Split-and-merge repair of a converged loop: while a cluster wastes its slot
+    (:func:`weak_cluster`: empty, or a duplicate of another motion), re-seed it with the
+    motion of the worst-explained coherent group of events (:func:`worst_explained`) and run
+    the loop again; keep the result when the joint objective rises and the slot holds
+    events, else stop. At most ``attempts`` re-seeds.
+
+    Decision: a cluster that loses its events to another never wins them back in the loop
+    (its volume is empty, so it responds to nothing); where the other motion blurs a group
+    of events, those events are what the lost cluster should explain (split-and-merge EM,
+    Ueda et al. 2000). The joint objective judges each repair, so a repair that does not
+    pay is undone.
+    """
+    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=(max(attempts, 1), 2))
+    for attempt in range(attempts):
+        slot = weak_cluster(result.thetas, result.probabilities, repair)
+        if slot is None:
+            break
+        group = worst_explained(
+            repair.responses(result.thetas, result.probabilities), result.probabilities, repair.xy
+        )
+        if group is None:
+            break
+        thetas = result.thetas.copy()
+        thetas[slot] = repair.fit(group, int(seeds[attempt, 0]))
+        p = _reseeded(result.probabilities, slot, group, thetas, repair)
+        candidate = repair.run(thetas, p, int(seeds[attempt, 1]))
+        still = weak_cluster(candidate.thetas, candidate.probabilities, repair)
+        log.info(
+            "repair: cluster %d re-seeded from %d events: total contrast %.6g -> %.6g%s",
+            slot,
+            len(group),
+            result.total,
+            candidate.total,
+            "" if still != slot else " (still weak)",
+        )
+        if candidate.total <= result.total or still == slot:
+            break
+        result = replace(candidate, repairs=result.repairs + 1)
+    return result
+
+
+#: A motion added by :func:`grow_clusters` must raise the joint objective by this share.
+MIN_GAIN = 0.05
+
+
+def _without(result: ClusteringResult, slot: int, repair: Repair, seed: int) -> ClusteringResult:
+    """The loop run again without cluster ``slot`` (its memberships shared by the others)."""
+    keep = np.delete(np.arange(len(result.thetas)), slot)
+    p = result.probabilities[:, keep]
+    p = p / np.maximum(p.sum(axis=1, keepdims=True), 1e-300)
+    return repair.run(
+        result.thetas[keep], np.where(p.sum(axis=1, keepdims=True) > 0, p, 1.0 / len(keep)), seed
+    )
+
+
+def grow_clusters(
+    result: ClusteringResult,
+    repair: Repair,
+    *,
+    seed: int,
+    max_clusters: int,
+    min_gain: float = MIN_GAIN,
+) -> ClusteringResult:
+    """The number of motions from the data: while a cluster wastes its slot
+    (:func:`weak_cluster`) drop it; then add a motion seeded from the worst-explained
+    coherent group of events (:func:`worst_explained`, as :func:`repair_clusters` does)
+    while one pays: the loop run with it must raise the sharpness
+    (:attr:`ClusteringResult.sharpness`) by at least ``min_gain`` of it and leave no
+    cluster wasted. At most ``max_clusters``.
+
+    Decision: the sum of contrasts is quadratic in each cluster's mass, so it falls when one
+    motion's events are split in two; the sharpness does not change then, and rises by the
+    share of events one more motion brings into focus. The gain required is the label cost
+    of a motion, relative so that it needs no scale (docs/method.md, "The number of
+    motions").
+    """
+    seeds = iter(np.random.default_rng(seed).integers(0, 2**31 - 1, size=4 * max_clusters + 4))
+    while len(result.thetas) > 1:
+        slot = weak_cluster(result.thetas, result.probabilities, repair)
+        if slot is None:
+            break
+        result = _without(result, slot, repair, int(next(seeds)))
+    while len(result.thetas) < max_clusters:
+        group = worst_explained(
+            repair.responses(result.thetas, result.probabilities), result.probabilities, repair.xy
+        )
+        if group is None:
+            break
+        k = len(result.thetas)
+        thetas = np.vstack([result.thetas, repair.fit(group, int(next(seeds)))])
+        p = np.hstack([result.probabilities, np.zeros((len(result.probabilities), 1))])
+        candidate = repair.run(thetas, _reseeded(p, k, group, thetas, repair), int(next(seeds)))
+        gain = (candidate.sharpness - result.sharpness) / max(abs(result.sharpness), 1e-300)
+        wasted = weak_cluster(candidate.thetas, candidate.probabilities, repair)
+        log.info(
+            "motion %d seeded from %d events: sharpness %.6g -> %.6g (%+.1f %%)%s",
+            k + 1,
+            len(group),
+            result.sharpness,
+            candidate.sharpness,
+            100 * gain,
+            "" if wasted is None else f", cluster {wasted} wasted",
+        )
+        if gain < min_gain or wasted is not None:
+            break
+        result = candidate
+    return result

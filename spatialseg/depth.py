@@ -2,8 +2,8 @@
 
 A real event camera records no depth. Each source here makes a :class:`DepthMap` for a
 time, the camera and (optionally) a keyframe image; :func:`attach_depth` puts such maps into
-a recording at its keyframe times or at regular event counts, and :func:`prepare_recording`
-is the one call a scene loader makes (denoise, then depth). Sources, selected by
+a recording at its keyframe times or at regular event counts, and
+:func:`with_configured_depth` is the one call a scene loader makes. Sources, selected by
 ``depth=NAME`` (``conf/depth/``; details and formulas in ``docs/depth.md``):
 
 - ``recording``: the recording's own maps (``depthmaps.txt`` or the simulator's);
@@ -26,7 +26,6 @@ from typing import Any, ClassVar
 import numpy as np
 
 from spatialseg.checks import is_integer, optional_positive
-from spatialseg.denoise import denoise_mask
 from spatialseg.recording import Camera, DepthMap, Keyframe, Recording, event_boundaries
 
 __all__ = [
@@ -37,9 +36,7 @@ __all__ = [
     "OnnxDepth",
     "RecordingDepth",
     "attach_depth",
-    "denoised",
     "make_depth_source",
-    "prepare_recording",
     "resize_bilinear",
     "with_configured_depth",
 ]
@@ -478,27 +475,6 @@ def attach_depth(recording: Recording, source: DepthSource, *, window_events: in
     return replace(recording, depth_maps=maps)
 
 
-def denoised(recording: Recording, cfg: Mapping[str, Any]) -> tuple[Recording, np.ndarray | None]:
-    """The recording without the events the ``denoise`` filter rejects (and their
-    ground-truth rows), and the keep-mask over the input events (None when the filter is
-    off), so that a caller can label the dropped events -1 in the input order."""
-    den = cfg.get("denoise") or {}
-    enabled = den.get("enabled", False)
-    if not isinstance(enabled, bool):
-        raise ValueError(f"denoise.enabled must be true or false, got {enabled!r}")
-    if not enabled:
-        return recording, None
-    keep = denoise_mask(recording.events, radius=den.get("radius"), window=den.get("window"))
-    n = len(keep)
-    log.info("denoise: kept %d of %d events (%.1f %%)", keep.sum(), n, 100 * keep.mean())
-    if n and not keep.any():
-        raise ValueError(
-            f"{recording.name}: denoise removed all {n} events; raise denoise.window "
-            "or denoise.radius, or set denoise.enabled=false"
-        )
-    return recording.select(keep), keep
-
-
 def with_configured_depth(recording: Recording, cfg: Mapping[str, Any]) -> Recording:
     """:func:`attach_depth` with the ``depth`` config (``window.events`` sets the window
     length for sources that read no images); a missing section means ``depth=recording``."""
@@ -507,9 +483,3 @@ def with_configured_depth(recording: Recording, cfg: Mapping[str, Any]) -> Recor
     return attach_depth(
         recording, source, window_events=window.get("events", len(recording.events))
     )
-
-
-def prepare_recording(recording: Recording, cfg: Mapping[str, Any]) -> Recording:
-    """What a scene loader applies to a loaded recording: the ``denoise`` filter
-    (:func:`denoised`), then depth (:func:`with_configured_depth`)."""
-    return with_configured_depth(denoised(recording, cfg)[0], cfg)

@@ -46,6 +46,7 @@ def window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) ->
                 "theta": thetas[j].tolist(),
                 "variance": float(c.values[j]),
                 "n_events": int(counts[j]),
+                "empty": bool(counts[j] == 0),  # no event's likeliest: no object seen
             }
             for j in range(thetas.shape[0])
         ],
@@ -104,7 +105,7 @@ def run_summary(
     return {
         "scene": name,
         "n_events": int(n_events),
-        "n_clusters": int(cfg["n_clusters"]),
+        "n_clusters": cfg["n_clusters"],
         "model": cfg["model"]["name"],
         "objective": cfg["objective"]["name"],
         "optimizer": cfg["optimizer"].get("_target_", ""),
@@ -199,8 +200,8 @@ class ProbabilityStream(ArrayStream):
     cluster's object id, written at the end as one ``rows x objects`` ``.npy`` (column =
     object id), one window in memory at a time."""
 
-    def __init__(self, path: Path, k: int) -> None:
-        super().__init__(path, np.float32, k)
+    def __init__(self, path: Path) -> None:
+        super().__init__(path, np.float32, 0)
         self._blocks: list[tuple[int, np.ndarray]] = []
 
     def append_window(self, rows: np.ndarray, ids: np.ndarray) -> None:
@@ -211,22 +212,21 @@ class ProbabilityStream(ArrayStream):
     def append_segmentation(self, seg: SegmentationResult) -> None:
         """Append every event of ``seg`` in order: each window's memberships, zeros for
         events outside every window."""
-        done = 0
+        done, none = 0, np.zeros(0, dtype=np.int64)
         for res, index in zip(seg.windows, seg.indices, strict=True):
             if len(index) and index[0] > done:
-                self.append_window(np.zeros((index[0] - done, self.width)), np.arange(self.width))
+                self.append_window(np.zeros((index[0] - done, 0)), none)
             self.append_window(seg.probabilities[index][:, res.ids], res.ids)
             done = index[-1] + 1 if len(index) else done
         if len(seg.labels) > done:
-            rest = len(seg.labels) - done
-            self.append_window(np.zeros((rest, self.width)), np.arange(self.width))
+            self.append_window(np.zeros((len(seg.labels) - done, 0)), none)
 
     def finish_objects(self, n_objects: int) -> Path:
         """Write the ``.npy`` with one column per object id."""
 
         def copy(raw: Any, f: Any) -> None:
             for count, ids in self._blocks:
-                block = np.fromfile(raw, self.dtype, count * self.width).reshape(count, -1)
+                block = np.fromfile(raw, self.dtype, count * len(ids)).reshape(count, len(ids))
                 out = np.zeros((count, n_objects), self.dtype)
                 out[:, ids] = block
                 f.write(out.tobytes())

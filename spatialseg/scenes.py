@@ -69,7 +69,7 @@ def load_scene(
 ) -> Recording:
     """The recording a scene config describes (``kind: simulated``: ``windows`` windows of
     ``window_events`` events; ``kind: recording``: the file), as stored: denoising and depth
-    sources come after (:func:`spatialseg.depth.prepare_recording`).
+    sources come after (:func:`spatialseg.depth.with_configured_depth`).
     """
     kind = scene.get("kind")
     if kind == "simulated":

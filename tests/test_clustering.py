@@ -11,8 +11,8 @@ import optimizers
 from spatialseg.clustering import (
     ConvergenceRules,
     IterationRecord,
-    _responses,
     _stop_reason,
+    cluster_responses,
     initial_memberships,
     iterative_clustering,
     p_step,
@@ -121,7 +121,7 @@ def test_p_step_prior_weight_scales_responses_by_the_cluster_shares():
     none = p_step(evaluator, truth, p, 2.0, 1, np.zeros(len(p)))
     full = p_step(evaluator, truth, p, 2.0, 1, np.ones(len(p)))
     np.testing.assert_allclose(none, plain, atol=1e-12)
-    responses = _responses(evaluator, truth, p, 2.0, 1)[0]
+    responses = cluster_responses(evaluator, truth, p, 2.0, 1)[0]
     np.testing.assert_allclose(full, update_memberships(responses * p.mean(axis=0)), atol=1e-12)
     assert p.mean(axis=0)[0] > 0.5 and np.all(full[:, 0] >= plain[:, 0] - 1e-12)
     for bad in (np.ones(3), np.full(len(p), 1.5)):

@@ -5,10 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import optimizers
 from spatialseg.denoise import denoise_mask
-from spatialseg.depth import prepare_recording
 from spatialseg.events import EventStream
-from spatialseg.recording import Camera, DepthMap, GroundTruth, Recording
+from spatialseg.pipeline import prepare, segment_window
+from spatialseg.recording import Camera, DepthMap, Recording
+from tests.test_pipeline import _config
 
 WIDTH, HEIGHT = 64, 48
 
@@ -122,27 +124,23 @@ def test_bad_parameters_are_one_line_errors(radius, window, message):
         denoise_mask(events, radius=radius, window=window)
 
 
-def test_prepare_recording_drops_noise_with_its_ground_truth():
-    events, signal = _noisy_edge(seed=3, noise_rate=1.0)
-    labels = np.where(signal, 0, -1)
+def test_noise_is_left_out_of_the_fit_and_still_labelled():
+    """With denoise.enabled the filter's rejects build no volume (the grid spans the fitted
+    events) but get a label from the fitted motion: nothing is dropped."""
+    events, _ = _noisy_edge(seed=3, noise_rate=1.0)
     camera = Camera(100.0, 100.0, WIDTH / 2, HEIGHT / 2, WIDTH, HEIGHT)
     depth = np.full((HEIGHT, WIDTH), 2.0)
     maps = (DepthMap(events.t[0], depth), DepthMap(events.t[-1], depth))
-    truth = GroundTruth(labels, {0: np.array([1.0, 0.0, 0.0])})
-    rec = Recording(events, camera, maps, ground_truth=truth)
-    cfg = {
-        "denoise": {"enabled": True, "radius": 1, "window": 0.005},
-        "depth": {"name": "recording"},
-        "window": {"events": 15000},
-    }
-    out = prepare_recording(rec, cfg)
+    window = Recording(events, camera, maps)
+    cfg = _config("denoise.enabled=true", "denoise.window=0.005", "n_clusters=1")
+    prepared = prepare(window, cfg)
     keep = denoise_mask(events, radius=1, window=0.005)
-    assert len(out.events) == keep.sum() < len(events)
-    np.testing.assert_array_equal(out.events.t, events.t[keep])
-    np.testing.assert_array_equal(out.ground_truth.labels, labels[keep])
-    assert out.depth_maps == maps
-    off = prepare_recording(rec, {**cfg, "denoise": {"enabled": False, "radius": 1, "window": 1}})
-    assert off is rec
-    with pytest.raises(ValueError, match="denoise removed all"):
-        lone = rec.select(slice(0, 1))
-        prepare_recording(lone, cfg)
+    np.testing.assert_array_equal(prepared.valid, keep)
+    np.testing.assert_array_equal(prepared.rest[2], ~keep)
+    assert len(prepared.points) == keep.sum() < len(events)
+    result = segment_window(window, cfg, optimizers.create("ssa_ga"), seed=0)
+    assert np.all(result.labels == 0)
+    off = prepare(window, _config("n_clusters=1"))
+    assert off.valid.all() and not off.rest[2].any()
+    with pytest.raises(ValueError, match=r"denoise\.enabled must be true or false"):
+        prepare(window, {**cfg, "denoise": {**cfg["denoise"], "enabled": 1}})

@@ -18,8 +18,8 @@ from spatialseg.depth import (
     GroundPlaneDepth,
     attach_depth,
     make_depth_source,
-    prepare_recording,
     resize_bilinear,
+    with_configured_depth,
 )
 from spatialseg.edpa import back_project
 from spatialseg.events import EventStream
@@ -329,13 +329,13 @@ def test_attach_depth_recording_source_keeps_the_recording():
     assert attach_depth(rec, make_depth_source({"name": "recording"}), window_events=5) is rec
 
 
-def test_prepare_recording_replaces_maps_unless_depth_is_recording():
+def test_configured_depth_replaces_maps_unless_depth_is_recording():
     t = np.linspace(0.0, 1.0, 60)
     maps = (DepthMap(0.0, np.ones((16, 24))), DepthMap(1.0, np.ones((16, 24))))
     rec = _recording(t, depth_maps=maps)
-    assert prepare_recording(rec, {"window": {"events": 30}}) is rec  # defaults: recording
+    assert with_configured_depth(rec, {"window": {"events": 30}}) is rec  # defaults: recording
     cfg = {"depth": {"name": "constant", "value": 3.0}, "window": {"events": 30}}
-    out = prepare_recording(rec, cfg)
+    out = with_configured_depth(rec, cfg)
     assert [m.t for m in out.depth_maps] == [t[0], t[30], t[59]]
     assert all(np.all(m.depth == 3.0) for m in out.depth_maps)
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from spatialseg.depth import prepare_recording
+from spatialseg.depth import with_configured_depth
 from spatialseg.events import EventStream
 from spatialseg.io import (
     iter_event_chunks,
@@ -110,10 +110,10 @@ def test_road_cars_scene_reads_the_packaged_file_with_its_assumed_camera() -> No
 
 
 def _with_depth(recording, depth_name: str, window_events: int):
-    """``prepare_recording`` with the shipped config of ``depth=depth_name``."""
+    """``with_configured_depth`` with the shipped config of ``depth=depth_name``."""
     depth = OmegaConf.to_container(OmegaConf.load(REPO / f"conf/depth/{depth_name}.yaml"))
     cfg = {"depth": depth, "window": {"events": window_events}}
-    return prepare_recording(recording, cfg)
+    return with_configured_depth(recording, cfg)
 
 
 def test_loaded_recording_gets_depth_maps_from_the_depth_config(tmp_path: Path) -> None:

@@ -118,7 +118,7 @@ def test_bad_windows_give_clear_errors(interior, kind):
 
 def test_zero_clusters_rejected(interior):
     cfg, rec = interior
-    with pytest.raises(ValueError, match="need at least one cluster"):
+    with pytest.raises(ValueError, match="n_clusters must be a whole number >= 1 or auto"):
         segment_recording(rec, {**cfg, "n_clusters": 0}, optimizers.create("ssa_ga"), seed=0)
 
 

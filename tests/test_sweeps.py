@@ -67,7 +67,10 @@ def test_failed_jobs_make_the_multirun_exit_1(sweep):
     for path in failed:
         info = json.loads(path.read_text())
         assert "n_clusters=0" in info["overrides"]
-        assert info["error"] == "ValueError: n_clusters=0: need at least one cluster"
+        assert info["error"] == (
+            "ValueError: n_clusters must be a whole number >= 1 or auto "
+            "(the number found per window), got 0"
+        )
     run = _client(root / "mlflow.db").get_run(parent)
     assert run.data.tags["jobs_failed"] == "2" and run.data.tags["jobs_total"] == "4"
     assert sorted(r.info.status for r in _children(root / "mlflow.db")) == [
