@@ -539,7 +539,9 @@ def _ego_layout(
 ) -> _Layout:
     """A moving camera's layout: the static scene's median image speed (a render of it)
     sets the window; one or two independent boxes (0.3-0.7 m wide, 0.4-1.2 m tall: bins,
-    bicycles, dogs) move across it in front of the static scene (:meth:`_Tools.place`)."""
+    bicycles, dogs) move across it in front of the static scene (:meth:`_Tools.place`);
+    one holding under :data:`MIN_EGO_SHARE` of a pilot simulation's events is brought
+    nearer (at most to a quarter of the sensor wide, half of it tall, and 1 m away)."""
     rng, cam = tools.rng, tools.cam
     speed, backdrop = _static_view(_probe(tools, _Layout([], 0.0, 1, background, props, ego)))
     windows = tools.windows()
@@ -557,7 +559,17 @@ def _ego_layout(
         thing.cell, thing.contrast = _static_cell(tools), tools.contrast((0.1, 0.3), (0.3, 0.6))
         things.append(thing)
     tools.place(things, half, backdrop=backdrop)
-    return _Layout(things, half, windows, background, props, ego)
+    layout = _Layout(things, half, windows, background, props, ego)
+    rates = _pilot_rates(tools, layout)  # an object must hold a share a user would see
+    total = max(sum(rates.values()), 1e-12)
+    limit = np.array([0.25 * cam.width, 0.5 * cam.height])
+    for k, thing in enumerate(things, start=1):
+        share = rates.get(k, 0.0) / total
+        if share < MIN_EGO_SHARE:  # nearer (still in front), so larger and faster in view
+            factor = np.sqrt(MIN_EGO_SHARE / max(share, 1e-3))
+            factor = min(factor, float(np.min(limit / thing.size)), thing.depth / 1.0)
+            thing.size, thing.depth = thing.size * factor, thing.depth / factor
+    return layout
 
 
 def _props(tools: _Tools, n: int, depth: tuple[float, float], ego: np.ndarray) -> list[_Thing]:
@@ -592,6 +604,10 @@ def _wall_texture(tools: _Tools, far: float) -> dict[str, Any]:
     low, high = tools.contrast((0.1, 0.3), (0.3, 0.6))
     cell = cam.metres(tools.rng.uniform(4.0, 7.0) * cam.scale, far)
     return {"kind": "noise", "cell": cell, "low": low, "high": high, "octaves": 1}
+
+
+#: The least share of the events an independent object of a moving-camera family holds.
+MIN_EGO_SHARE = 0.05
 
 
 @_family("ego_sideways")
