@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["is_integer", "optional_positive"]
+__all__ = ["integer_setting", "is_integer", "optional_positive"]
 
 
 def is_integer(value: Any, minimum: int) -> bool:
@@ -27,3 +27,17 @@ def optional_positive(value: Any, key: str) -> float | None:
     if not number or not np.isfinite(value) or not value > 0:
         raise ValueError(f"{key} must be a positive number or null, got {value!r}")
     return float(value)
+
+
+def integer_setting(
+    value: Any, key: str, minimum: int, *, optional: bool = False, hint: str = ""
+) -> int | None:
+    """``value`` as an int >= ``minimum`` (None for null when ``optional``); else a one-line
+    ValueError that names the setting ``key`` (``hint``, e.g. "0: off", in brackets)."""
+    if optional and value is None:
+        return None
+    if not is_integer(value, minimum):
+        expected = f"an integer >= {minimum}" + (" or null" if optional else "")
+        note = f" ({hint})" if hint else ""
+        raise ValueError(f"{key} must be {expected}{note}, got {value!r}")
+    return int(value)

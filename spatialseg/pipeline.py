@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from spatialseg import edpa, hypotheses, motion_init
-from spatialseg.checks import is_integer, optional_positive
+from spatialseg.checks import integer_setting, is_integer, optional_positive
 from spatialseg.clustering import (
     ClusteringResult,
     ConvergenceRules,
@@ -908,19 +908,14 @@ def cluster_count(cfg: Mapping[str, Any]) -> int | None:
 
 
 def _max_clusters(ccfg: Mapping[str, Any]) -> int:
-    """``clustering.max_clusters`` (n_clusters=auto's limit): an integer >= 1."""
-    value = ccfg["max_clusters"]
-    if not is_integer(value, 1):
-        raise ValueError(f"clustering.max_clusters must be an integer >= 1, got {value!r}")
-    return int(value)
+    """``clustering.max_clusters`` (n_clusters=auto's limit), checked."""
+    return integer_setting(ccfg["max_clusters"], "clustering.max_clusters", 1)
 
 
 def _fit_events(ccfg: Mapping[str, Any]) -> int | None:
-    """``clustering.fit_events``: an integer >= 1, or None (fit on every event)."""
+    """``clustering.fit_events``, checked (None: fit on every event)."""
     value = ccfg["fit_events"]
-    if value is not None and not is_integer(value, 1):
-        raise ValueError(f"clustering.fit_events must be an integer >= 1 or null, got {value!r}")
-    return None if value is None else int(value)
+    return integer_setting(value, "clustering.fit_events", 1, optional=True, hint="null: all")
 
 
 def _smoothness(ccfg: Mapping[str, Any]) -> float:
@@ -932,11 +927,8 @@ def _smoothness(ccfg: Mapping[str, Any]) -> float:
 
 
 def _repair_attempts(ccfg: Mapping[str, Any]) -> int:
-    """``clustering.repair``: an integer >= 0 (0: off), or a one-line error."""
-    attempts = ccfg["repair"]
-    if not is_integer(attempts, 0):
-        raise ValueError(f"clustering.repair must be an integer >= 0 (0: off), got {attempts!r}")
-    return int(attempts)
+    """``clustering.repair``, checked (0: off)."""
+    return integer_setting(ccfg["repair"], "clustering.repair", 0, hint="0: off")
 
 
 def motion_separation(prepared: Prepared, a: np.ndarray, b: np.ndarray) -> float:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spatialseg.checks import is_integer, optional_positive
+from spatialseg.checks import integer_setting, is_integer, optional_positive
 from spatialseg.recording import check_window_context
 
 
@@ -41,3 +41,16 @@ def test_optional_positive_is_a_float_or_none_and_names_the_key():
     for bad in (0, -1.0, float("nan"), float("inf"), True, "5"):
         with pytest.raises(ValueError, match=r"^a\.b must be a positive number or null, got"):
             optional_positive(bad, "a.b")
+
+
+def test_integer_setting_names_the_key_its_range_and_the_hint():
+    assert integer_setting(3, "clustering.repair", 0) == 3
+    assert integer_setting(None, "clustering.fit_events", 1, optional=True) is None
+    for value in (2.5, None, True, -1):
+        with pytest.raises(ValueError) as info:
+            integer_setting(value, "clustering.repair", 0, hint="0: off")
+        assert str(info.value) == (
+            f"clustering.repair must be an integer >= 0 (0: off), got {value!r}"
+        )
+    with pytest.raises(ValueError, match=r"must be an integer >= 1 or null, got 0"):
+        integer_setting(0, "clustering.fit_events", 1, optional=True)
