@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from spatialseg import edpa, hypotheses, motion_init
 from spatialseg.checks import integer_setting, is_integer, optional_positive
@@ -530,8 +531,9 @@ def fit_support(window: Recording, cfg: Mapping[str, Any], *, seed: int = 0) -> 
     if not isinstance(enabled, bool):
         raise ValueError(f"denoise.enabled must be true or false, got {enabled!r}")
     support = np.ones(len(window.events), dtype=bool)
-    if enabled:
+    if enabled:  # a window the filter rejects whole (a few events) is fitted on them all
         support = denoise_mask(window.events, radius=den["radius"], window=den["window"])
+        support |= not support.any()
     cap = _fit_events(cfg["clustering"])
     if cap is not None and np.count_nonzero(support) > cap:
         drawn = np.random.default_rng(seed).choice(np.flatnonzero(support), cap, replace=False)
@@ -627,7 +629,8 @@ def label_rest(
     """Memberships (R x K) of the events left out of the fit (``prepared.rest``): each
     cluster's volume of the fitted events (their final memberships), smoothed as in the
     P-step (``blur``: sigmas and stride), sampled where the cluster's motion warps each of
-    them; normalised (Eq. 26)."""
+    them; normalised (Eq. 26). An event no cluster's volume reaches takes the memberships of
+    the nearest fitted event, not a tie that the column order would break."""
     points, t, _ = prepared.rest
     both = np.vstack([prepared.points, points])
     volume = VolumeObjective(
@@ -641,7 +644,13 @@ def label_rest(
     zeros = np.zeros((len(points), result.probabilities.shape[1]))
     memberships = np.vstack([result.probabilities, zeros])
     responses = cluster_responses(evaluator, result.thetas, memberships, *blur)[0]
-    return update_memberships(responses[len(prepared.points) :])
+    responses = responses[len(prepared.points) :]
+    rest = update_memberships(responses)
+    unexplained = ~np.any(responses > 0, axis=1)
+    if unexplained.any() and len(prepared.points):
+        nearest = cKDTree(prepared.points).query(points[unexplained])[1]
+        rest[unexplained] = result.probabilities[nearest]
+    return rest
 
 
 def assign_labels(

@@ -140,7 +140,7 @@ def test_noise_is_left_out_of_the_fit_and_still_labelled():
     assert len(prepared.points) == keep.sum() < len(events)
     result = segment_window(window, cfg, optimizers.create("ssa_ga"), seed=0)
     assert np.all(result.labels == 0)
-    off = prepare(window, _config("n_clusters=1"))
+    off = prepare(window, _config("n_clusters=1", "denoise.enabled=false"))
     assert off.valid.all() and not off.rest[2].any()
     with pytest.raises(ValueError, match=r"denoise\.enabled must be true or false"):
         prepare(window, {**cfg, "denoise": {**cfg["denoise"], "enabled": 1}})

@@ -357,7 +357,6 @@ def test_composed_depth_config_validates_and_builds(name):
     validate_config(cfg, {"depth": name, "scene": "interior"})
     source = make_depth_source(OmegaConf.to_container(cfg.depth))
     assert source.name == name
-    assert cfg.denoise.enabled is False
 
 
 def test_composed_config_rejects_a_misspelt_depth_parameter():
