@@ -294,7 +294,7 @@ def _truncated_aedat(path: Path) -> Path:
 @pytest.mark.parametrize(
     ("name", "content", "fragments"),
     [
-        ("half.aedat4", None, ("half.aedat4", "truncated or corrupt")),
+        ("half.aedat4", None, ("half.aedat4 header", "packets end at", "damaged or truncated")),
         ("text.aedat4", b"hello world", ("not an AEDAT4 file",)),
         ("empty.aedat4", b"", ("not an AEDAT4 file",)),
         ("noenc.raw", b"% geometry 640x480\n% end\n\x00\x80", ("header names no encoding",)),

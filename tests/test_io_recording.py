@@ -291,7 +291,7 @@ def test_ground_truth_errors(rec_dir: Path) -> None:
     with pytest.raises(ValueError, match=r"event_labels.npy: expected 30 integer labels"):
         read_recording(rec_dir)
     np.save(gt / "event_labels.npy", np.full(30, 7))
-    with pytest.raises(ValueError, match=r"ground_truth: .*objects \[7\] with no motion"):
+    with pytest.raises(ValueError, match=r"event_labels\.npy: .*objects \[7\] with no motion"):
         read_recording(rec_dir)
     motions = gt / "motions.json"
     motions.write_text('{"objects": [\n  {"id": 7, "velocity": [1, 2, 3],}\n]}\n')
@@ -299,6 +299,9 @@ def test_ground_truth_errors(rec_dir: Path) -> None:
         read_recording(rec_dir)
     motions.write_text(json.dumps({"objects": [{"id": 7, "velocity": [1, 2]}]}))
     with pytest.raises(ValueError, match=r"motions.json objects\[0\]: expected \{\"id\""):
+        read_recording(rec_dir)
+    motions.write_text(json.dumps({"objects": [{"id": 7, "velocity": [1, float("nan"), 3]}]}))
+    with pytest.raises(ValueError, match=r"objects\[0\]: .*with finite numbers, got .*NaN"):
         read_recording(rec_dir)
     motions.write_text(json.dumps({"objects": [{"id": 7, "velocity": [1, 2, 3]}] * 2}))
     with pytest.raises(ValueError, match=r"objects\[1\]: object id 7 appears twice"):

@@ -11,7 +11,8 @@
   bounded memory. :func:`write_prophesee` writes ``.raw``/``.dat`` (tests, conversion).
 
 Malformed input raises ``ValueError`` (``FileNotFoundError`` for a missing file) whose
-one-line message names the file, the line (or event index) and the fix.
+one-line message names the file, the line (or event index) and the fix; so does a damaged
+file, whatever its decoder raised (``spatialseg.io._decode``), a Rust panic included.
 """
 
 from spatialseg.io._directory import read_recording, write_recording

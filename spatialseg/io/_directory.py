@@ -8,6 +8,7 @@ optional ``sensor.txt``, ``depthmaps.txt`` (+ ``.npy`` files), ``images.txt`` (+
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
@@ -15,6 +16,7 @@ import matplotlib.image
 import numpy as np
 
 from spatialseg.io._atomic import atomic_directory
+from spatialseg.io._decode import decoding
 from spatialseg.io._events import (
     PathLike,
     Size,
@@ -50,18 +52,16 @@ def _events_file(root: Path) -> Path:
     return found[0]
 
 
-def _load_npy(path: Path) -> np.ndarray:
-    """One array from a ``.npy`` file (no pickles), or a ValueError naming the file."""
-    try:
-        array = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: cannot read as .npy ({exc})") from None
+def _load_npy(path: Path, mmap: bool = False) -> np.ndarray:
+    """One array from a ``.npy`` file (no pickles; memory-mapped if ``mmap``), or a ValueError."""
+    with decoding(path, ".npy"):
+        array = np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
     if not isinstance(array, np.ndarray):
         raise ValueError(f"{path}: is an .npz archive; save a single array with np.save")
     return array
 
 
-def _listed_files(listing: Path, what: str) -> Iterator[tuple[int, float, Path]]:
+def listed_files(listing: Path, what: str) -> Iterator[tuple[int, float, Path]]:
     """``(line number, time, existing file)`` for each ``t path`` line of an optional listing."""
     if not listing.is_file():
         return
@@ -72,24 +72,30 @@ def _listed_files(listing: Path, what: str) -> Iterator[tuple[int, float, Path]]
         yield number, t, file
 
 
+def depth_array(file: Path, mmap: bool = False) -> np.ndarray:
+    """A depth map's float (H, W) array from its ``.npy`` file (memory-mapped if ``mmap``)."""
+    depth = _load_npy(file, mmap)
+    if depth.ndim != 2:
+        raise ValueError(f"{file}: expected a 2-D (H, W) depth map, got shape {depth.shape}")
+    if depth.dtype.kind != "f":
+        raise ValueError(
+            f"{file}: dtype {depth.dtype}, expected float32 metres; "
+            "convert it (e.g. millimetres / 1000.0)"
+        )
+    return depth
+
+
 def _read_depth_maps(root: Path) -> list[DepthMap]:
     """The depth maps of ``depthmaps.txt``: time-sorted float (H, W) arrays of one shape."""
     listing = root / "depthmaps.txt"
     maps: list[DepthMap] = []
-    for number, t, file in _listed_files(listing, "depth map"):
+    for number, t, file in listed_files(listing, "depth map"):
         if maps and t < maps[-1].t:
             raise ValueError(
                 f"{listing} line {number}: times not sorted ({t!r} < {maps[-1].t!r}); "
                 "sort the file by time"
             )
-        depth = _load_npy(file)
-        if depth.ndim != 2:
-            raise ValueError(f"{file}: expected a 2-D (H, W) depth map, got shape {depth.shape}")
-        if depth.dtype.kind != "f":
-            raise ValueError(
-                f"{file}: dtype {depth.dtype}, expected float32 metres; "
-                "convert it (e.g. millimetres / 1000.0)"
-            )
+        depth = depth_array(file)
         if maps and depth.shape != maps[0].depth.shape:
             raise ValueError(
                 f"{file}: shape {depth.shape} differs from the first depth map "
@@ -101,10 +107,8 @@ def _read_depth_maps(root: Path) -> list[DepthMap]:
 
 def _read_image(file: Path) -> np.ndarray:
     """A keyframe image as uint8: (H, W) if its colour channels are equal, else (H, W, 3)."""
-    try:
+    with decoding(file, "an image"):
         image = matplotlib.image.imread(file)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{file}: cannot read as an image ({exc})") from None
     if image.dtype.kind == "f":  # matplotlib reads PNG pixels as floats in [0, 1]
         image = np.round(image * 255)
     image = image.astype(np.uint8)
@@ -118,7 +122,7 @@ def _read_keyframes(root: Path) -> list[Keyframe]:
     """The keyframes of ``images.txt``, in file order."""
     return [
         Keyframe(t, _read_image(file), source=str(file))
-        for _, t, file in _listed_files(root / "images.txt", "image")
+        for _, t, file in listed_files(root / "images.txt", "image")
     ]
 
 
@@ -130,21 +134,23 @@ def _motion_object(entry: object, where: str) -> tuple[int, list[float], str | N
         and type(entry.get("id")) is int
         and isinstance(velocity, list)
         and len(velocity) == 3
-        and all(type(v) in (int, float) for v in velocity)
+        and all(type(v) in (int, float) and math.isfinite(v) for v in velocity)
         and isinstance(entry.get("name", ""), str)
     )
     if not valid:
         raise ValueError(
             f'{where}: expected {{"id": <int>, "name": <str, optional>, '
-            f'"velocity": [vx, vy, vz]}}, got {json.dumps(entry)[:80]}'
+            f'"velocity": [vx, vy, vz]}} with finite numbers, got {json.dumps(entry)[:80]}'
         )
     return entry["id"], velocity, entry.get("name")
 
 
 def _read_motions(path: Path) -> tuple[dict[int, list[float]], dict[int, str]]:
     """Each object's velocity and name from ``motions.json``."""
+    with decoding(path, "UTF-8 text"):
+        text = path.read_text(encoding="utf-8")
     try:
-        document = json.loads(path.read_text(encoding="utf-8"))
+        document = json.loads(text)
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path} line {exc.lineno}: {exc.msg}; fix the JSON") from None
     objects = document.get("objects") if isinstance(document, dict) else None
@@ -181,8 +187,8 @@ def _read_ground_truth(folder: Path, n_events: int) -> GroundTruth | None:
     motions, names = _read_motions(motions_path)
     try:
         return GroundTruth(labels, motions, names)
-    except ValueError as exc:
-        raise ValueError(f"{folder}: {exc}") from None
+    except ValueError as exc:  # labels naming objects that motions.json lacks
+        raise ValueError(f"{labels_path}: {exc}") from None
 
 
 def _sensor_size(root: Path, maps: Sequence[DepthMap], events_path: Path) -> Size:

@@ -9,7 +9,6 @@ npz: arrays ``t`` (seconds), ``x``, ``y``, ``p`` and optionally 0-d ``width``, `
 from __future__ import annotations
 
 import os
-import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import numpy as np
 
 from spatialseg.events import EventStream, normalise_polarity
 from spatialseg.io._atomic import atomic_file
+from spatialseg.io._decode import decoding
 from spatialseg.io._text import read_events_txt, write_events_txt
 
 __all__ = [
@@ -83,16 +83,15 @@ def _require_file(path: Path) -> None:
 
 def _open_h5(path: Path) -> h5py.File:
     """Open an HDF5 file for reading, or a ValueError naming it."""
-    try:
+    with decoding(path, "HDF5"):
         return h5py.File(path, "r")
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot open as HDF5 ({exc})") from None
 
 
 def _h5_events(f: h5py.File, path: Path) -> h5py.Group:
     """The ``events`` group holding datasets x, y, t, p, or a ValueError naming what is missing."""
-    group = f.get("events")
-    missing = [k for k in _FIELDS if not isinstance(group, h5py.Group) or k not in group]
+    with decoding(path, "HDF5", "group events"):
+        group = f.get("events")
+        missing = [k for k in _FIELDS if not isinstance(group, h5py.Group) or k not in group]
     if missing:
         raise ValueError(
             f"{path}: missing {', '.join('events/' + k for k in missing)}; "
@@ -103,10 +102,8 @@ def _h5_events(f: h5py.File, path: Path) -> h5py.Group:
 
 def _open_npz(path: Path) -> np.lib.npyio.NpzFile:
     """Open an ``.npz`` archive (no pickles), or a ValueError naming it."""
-    try:
+    with decoding(path, ".npz"):
         archive = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise ValueError(f"{path}: cannot read as .npz ({exc})") from None
     if not isinstance(archive, np.lib.npyio.NpzFile):
         raise ValueError(f"{path}: holds a single array, not an .npz archive of t, x, y, p")
     return archive
@@ -118,36 +115,62 @@ def stored_sensor_size(path: Path) -> Size | None:
     _require_file(path)
     if kind == "h5":
         with _open_h5(path) as f:
-            attrs = _h5_events(f, path).attrs
-            source = f"{path} (attributes of events)"
-            return _size_pair(source, attrs.get("width"), attrs.get("height"))
+            group = _h5_events(f, path)
+            with decoding(path, "HDF5", "attributes of events"):
+                width, height = group.attrs.get("width"), group.attrs.get("height")
+            return _size_pair(f"{path} (attributes of events)", width, height)
     if kind == "npz":
         with _open_npz(path) as archive:
-            return _size_pair(str(path), archive.get("width"), archive.get("height"))
+            width, height = (_npz_member(archive, path, k) for k in ("width", "height"))
+            return _size_pair(str(path), width, height)
     return None
+
+
+def h5_dataset(f: h5py.File, path: Path, name: str, part: slice | tuple[()] = ()) -> np.ndarray:
+    """``part`` (default: all) of dataset ``name``, e.g. ``events/t``; a failure names it."""
+    with decoding(path, "HDF5", f"dataset {name}"):
+        return f[name][part]
+
+
+def h5_time_offset(f: h5py.File, path: Path) -> np.int64:
+    """The root dataset ``t_offset`` (DSEC, microseconds), 0 without it."""
+    with decoding(path, "HDF5", "dataset t_offset"):
+        present = "t_offset" in f
+    return np.int64(h5_dataset(f, path, "t_offset")) if present else np.int64(0)
 
 
 def _read_h5_arrays(path: Path) -> tuple[np.ndarray, ...]:
     """``t`` (seconds), ``x``, ``y``, ``p`` of an HDF5 file; integer t is DSEC's microseconds."""
     with _open_h5(path) as f:
-        group = _h5_events(f, path)
-        t, x, y, p = (group[k][()] for k in _FIELDS)
-        offset = f["t_offset"][()] if "t_offset" in f else 0
+        _h5_events(f, path)
+        t, x, y, p = (h5_dataset(f, path, f"events/{k}") for k in _FIELDS)
+        offset = h5_time_offset(f, path)
     if t.dtype.kind in "iu":
-        t = (t.astype(np.int64) + np.int64(offset)) / 1e6
+        t = (t.astype(np.int64) + offset) / 1e6
     return t, x, y, p
+
+
+def _npz_member(archive: np.lib.npyio.NpzFile, path: Path, name: str) -> np.ndarray | None:
+    """Array ``name`` of an open ``.npz`` archive (None if absent); a decoding failure names it."""
+    with decoding(path, ".npz", f"member '{name}.npy'"):
+        return archive[name] if name in archive.files else None
+
+
+def require_npz_arrays(path: Path, names: Sequence[str]) -> None:
+    """Raise a ValueError naming the arrays t, x, y, p missing from ``names``."""
+    missing = [k for k in _FIELDS if k not in names]
+    if missing:
+        raise ValueError(
+            f"{path}: missing array(s) {', '.join(missing)}; "
+            "expected t, x, y, p (and optionally width, height)"
+        )
 
 
 def _read_npz_arrays(path: Path) -> tuple[np.ndarray, ...]:
     """``t`` (seconds), ``x``, ``y``, ``p`` of an ``.npz`` archive."""
     with _open_npz(path) as archive:
-        missing = [k for k in _FIELDS if k not in archive.files]
-        if missing:
-            raise ValueError(
-                f"{path}: missing array(s) {', '.join(missing)}; "
-                "expected t, x, y, p (and optionally width, height)"
-            )
-        return tuple(archive[k] for k in _FIELDS)
+        require_npz_arrays(path, archive.files)
+        return tuple(_npz_member(archive, path, k) for k in _FIELDS)
 
 
 def load_events(path: Path, size: Size) -> EventStream:

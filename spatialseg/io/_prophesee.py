@@ -34,6 +34,7 @@ import numpy as np
 
 from spatialseg.events import EventStream
 from spatialseg.io._atomic import atomic_file
+from spatialseg.io._decode import damaged
 
 __all__ = [
     "ProphHeader",
@@ -74,12 +75,12 @@ def _header_lines(f: BinaryIO, path: Path) -> list[str]:
             return lines
         raw = f.readline()
         if not raw.endswith(b"\n"):
-            raise ValueError(f"{path}: truncated header (no end of line after '%{raw[:40]!r}')")
+            raise damaged(path, f"truncated header (no end of line after '%{raw[:40]!r}')")
         text = raw.decode("ascii", errors="replace").strip()
         if text == "end":
             return lines
         lines.append(text)
-    raise ValueError(f"{path}: more than {_MAX_HEADER_LINES} '%' header lines; file is corrupt")
+    raise damaged(path, f"more than {_MAX_HEADER_LINES} '%' header lines")
 
 
 def _header_size(path: Path, lines: list[str]) -> tuple[int, int] | None:
@@ -130,7 +131,7 @@ def read_prophesee_header(path: Path) -> ProphHeader:
             return ProphHeader(_raw_encoding(path, lines), _header_size(path, lines), f.tell())
         pair = f.read(2)
         if len(pair) < 2:
-            raise ValueError(f"{path}: truncated after the header (no event type and size bytes)")
+            raise damaged(path, "truncated after the header (no event type and size bytes)")
         kind, size = pair[0], pair[1]
         if kind not in _DAT_TYPES or size != _DAT_RECORD:
             raise ValueError(
@@ -278,9 +279,10 @@ def iter_prophesee_arrays(
     unit = 2 * dtype.itemsize if header.encoding == "dat" else dtype.itemsize
     total = path.stat().st_size - header.data_offset
     if total % unit:
-        raise ValueError(
-            f"{path}: truncated: {total} data bytes is not a whole number of "
-            f"{unit}-byte {'records' if header.encoding == 'dat' else 'words'}"
+        raise damaged(
+            path,
+            f"truncated: {total} data bytes is not a whole number of "
+            f"{unit}-byte {'records' if header.encoding == 'dat' else 'words'}",
         )
     state = _State()
     with path.open("rb") as f:

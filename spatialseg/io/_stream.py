@@ -21,6 +21,7 @@ import numpy as np
 
 from spatialseg.checks import is_integer
 from spatialseg.events import EventStream, normalise_polarity
+from spatialseg.io._decode import damaged, decoding
 from spatialseg.io._events import (
     PathLike,
     Size,
@@ -28,9 +29,12 @@ from spatialseg.io._events import (
     _open_h5,
     _size_pair,
     agreed_size,
+    h5_dataset,
+    h5_time_offset,
+    require_npz_arrays,
     stored_sensor_size,
 )
-from spatialseg.io._text import _parse_event_line, read_sensor, read_timed_paths
+from spatialseg.io._text import _parse_event_line, read_sensor
 
 __all__ = ["SUPPORTED", "iter_event_chunks", "recording_kind", "resolve_size"]
 
@@ -151,20 +155,22 @@ def _h5_blocks(path: Path, chunk_events: int) -> Iterator[Block]:
     polarity = _Polarity(str(path))
     with _open_h5(path) as f:
         group = _h5_events(f, path)
-        offset = f["t_offset"][()] if "t_offset" in f else 0
-        lengths = {k: group[k].shape for k in _FIELDS}
+        offset = h5_time_offset(f, path)
+        with decoding(path, "HDF5", "group events"):
+            lengths = {k: group[k].shape for k in _FIELDS}
         if len(set(lengths.values())) != 1 or len(lengths["t"]) != 1:
             raise ValueError(f"{path}: events datasets differ in shape {lengths}; give 1-D arrays")
         for start in range(0, lengths["t"][0], chunk_events):
-            t, x, y, p = (group[k][start : start + chunk_events] for k in _FIELDS)
+            part = slice(start, start + chunk_events)
+            t, x, y, p = (h5_dataset(f, path, f"events/{k}", part) for k in _FIELDS)
             if t.dtype.kind in "iu":
-                t = (t.astype(np.int64) + np.int64(offset)) / 1e6
+                t = (t.astype(np.int64) + offset) / 1e6
             yield t, x, y, polarity(p)
 
 
 def _npy_member(archive: zipfile.ZipFile, name: str, path: Path) -> tuple[object, np.dtype, int]:
     """An open member ``name.npy`` of an ``.npz``, positioned at its data, its dtype and length."""
-    try:
+    with decoding(path, ".npz", f"member '{name}.npy'"):
         stream = archive.open(f"{name}.npy")
         version = np.lib.format.read_magic(stream)
         read_header = (
@@ -173,10 +179,6 @@ def _npy_member(archive: zipfile.ZipFile, name: str, path: Path) -> tuple[object
             else np.lib.format.read_array_header_2_0
         )
         shape, _, dtype = read_header(stream)
-    except (KeyError, ValueError, OSError, zipfile.BadZipFile) as exc:
-        raise ValueError(
-            f"{path}: cannot read array {name!r} ({exc}); expected t, x, y, p"
-        ) from None
     if len(shape) != 1 or dtype.hasobject:
         raise ValueError(f"{path}: array {name!r} has shape {shape} {dtype}; expected 1-D numbers")
     return stream, dtype, int(shape[0])
@@ -185,11 +187,10 @@ def _npy_member(archive: zipfile.ZipFile, name: str, path: Path) -> tuple[object
 def _npz_blocks(path: Path, chunk_events: int) -> Iterator[Block]:
     """``chunk_events`` elements at a time of each of ``t, x, y, p`` of an ``.npz`` archive."""
     polarity = _Polarity(str(path))
-    try:
+    with decoding(path, ".npz"):
         archive = zipfile.ZipFile(path)
-    except (OSError, zipfile.BadZipFile) as exc:
-        raise ValueError(f"{path}: cannot read as .npz ({exc})") from None
     with archive:
+        require_npz_arrays(path, [name.removesuffix(".npy") for name in archive.namelist()])
         members = {k: _npy_member(archive, k, path) for k in _FIELDS}
         lengths = {k: m[2] for k, m in members.items()}
         if len(set(lengths.values())) != 1:
@@ -197,10 +198,12 @@ def _npz_blocks(path: Path, chunk_events: int) -> Iterator[Block]:
         for start in range(0, lengths["t"], chunk_events):
             count = min(chunk_events, lengths["t"] - start)
             block = []
-            for stream, dtype, _ in members.values():
-                data = stream.read(count * dtype.itemsize)
+            for name, (stream, dtype, _) in members.items():
+                where = f"member '{name}.npy'"
+                with decoding(path, ".npz", where):
+                    data = stream.read(count * dtype.itemsize)
                 if len(data) != count * dtype.itemsize:
-                    raise ValueError(f"{path}: truncated array data near event {start}")
+                    raise damaged(path, f"array data ends before event {start + count}", where)
                 block.append(np.frombuffer(data, dtype=dtype))
             t, x, y, p = block
             yield t, x, y, polarity(p)
@@ -232,18 +235,13 @@ def _prophesee_blocks(path: Path, chunk_events: int) -> Iterator[Block]:
 
 def _first_depth_shape(root: Path) -> tuple[str, Size] | None:
     """``(source, (W, H))`` of a directory's first listed depth map, memory-mapped (not loaded)."""
-    listing = root / "depthmaps.txt"
-    if not listing.is_file():
+    from spatialseg.io._directory import depth_array, listed_files
+
+    first = next(listed_files(root / "depthmaps.txt", "depth map"), None)
+    if first is None:
         return None
-    entries = read_timed_paths(listing)
-    if not entries:
-        return None
-    file = root / entries[0][2]
-    try:
-        height, width = np.load(file, mmap_mode="r", allow_pickle=False).shape
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{file}: cannot read as a 2-D .npy depth map ({exc})") from None
-    return str(file), (width, height)
+    height, width = depth_array(first[2], mmap=True).shape
+    return str(first[2]), (width, height)
 
 
 def _directory_source(root: Path, given: Size | None) -> tuple[Path, Size]:
