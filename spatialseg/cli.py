@@ -3,7 +3,9 @@
 A user mistake (unknown config key, malformed recording, empty window) ends the run with
 one ``error:`` line on stderr and exit status 2, never a traceback. Set
 ``SPATIALSEG_DEBUG=1`` to get the full traceback instead. A multirun runs every job; if any
-failed, it ends with one ``error: N of M jobs failed`` line and exit status 1.
+failed, it ends with one ``error: N of M jobs failed`` line and exit status 1. A config
+option that no config directory holds (``+scene=nosuch``; a user's own go in ``--config-dir``)
+ends in one ``error:`` line listing the options, exit status 2.
 """
 
 from __future__ import annotations
@@ -13,17 +15,19 @@ import os
 import sys
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import hydra
 import numpy as np
+from hydra._internal.utils import run_and_report
 from hydra.core.hydra_config import HydraConfig
-from hydra.errors import InstantiationException
+from hydra.errors import InstantiationException, MissingConfigException, SearchPathException
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from spatialseg.config import ConfigError, conf_dir, validate_config
+from spatialseg.config import ConfigError, conf_dir, validate_run
 
 __all__ = ["guarded", "launch", "main", "run"]
 
@@ -73,7 +77,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from spatialseg.scenes import load_scene
     from spatialseg.tracking import record
 
-    validate_config(cfg, HydraConfig.get().runtime.choices)
+    validate_run(cfg)
     plain = OmegaConf.to_container(cfg, resolve=True)
     check_config(plain)
     out_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -203,8 +207,50 @@ def launch(task: Callable[[DictConfig], object], config_name: str) -> None:
     except USER_ERRORS as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
-    hydra.main(version_base="1.3", config_path=path, config_name=config_name)(guarded(task))()
+    main_of = hydra.main(version_base="1.3", config_path=path, config_name=config_name)
+    _run_reporting_missing_configs(main_of(guarded(task)))
     _exit_if_jobs_failed()
+
+
+def _missing_config_line(exc: MissingConfigException | SearchPathException) -> str:
+    """Hydra's first line of a missing-config error, with the group's options and the fix."""
+    line = str(exc).strip().splitlines()[0]
+    if not isinstance(exc, MissingConfigException) or not exc.options or not exc.missing_cfg_file:
+        return line
+    group = exc.missing_cfg_file.rpartition("/")[0]
+    return (
+        f"{line}; options in '{group}': {', '.join(exc.options)}; "
+        f"or put your own in DIR/{group}/NAME.yaml and add --config-dir DIR"
+    )
+
+
+def _reraise(exc: Exception) -> None:
+    """Raise ``exc`` again (for Hydra's own report of it)."""
+    raise exc
+
+
+def _run_reporting_missing_configs(app: Callable[[], None]) -> None:
+    """Run the Hydra ``app``; an unknown config option or ``--config-dir`` ends in one
+    ``error:`` line and exit status 2.
+
+    Hydra prints these in many lines and exits 1; with HYDRA_FULL_ERROR set it raises them,
+    so they are caught here and any other error goes back to Hydra's own report. A user's
+    own HYDRA_FULL_ERROR=1 leaves every error to Hydra.
+    """
+    if os.environ.get("HYDRA_FULL_ERROR"):
+        app()
+        return
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    try:
+        app()
+    except (MissingConfigException, SearchPathException) as exc:
+        print(f"error: {_missing_config_line(exc)}", file=sys.stderr)
+        sys.exit(2)
+    except Exception as exc:
+        del os.environ["HYDRA_FULL_ERROR"]
+        run_and_report(partial(_reraise, exc))
+    finally:
+        os.environ.pop("HYDRA_FULL_ERROR", None)
 
 
 def _exit_if_jobs_failed() -> None:

@@ -1,19 +1,32 @@
-"""Locating ``conf/`` and validating a composed configuration against it.
+"""Locating ``conf/`` and validating a composed configuration against the config files.
 
 Hydra accepts ``+anything=value`` and silently adds the key, so a misspelt ``+scnee=interior``
 would run without a scene. :func:`validate_config` compares every key of the composed config
-with the keys the shipped YAML files define and rejects the unknown ones, listing the valid.
+with the keys the YAML files define and rejects the unknown ones, listing the valid. The YAML
+files are looked up where Hydra found them: the shipped ``conf/`` and a user's own config
+directories (``--config-dir DIR``, ``hydra.searchpath=[file://DIR]``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import contextlib
+from collections.abc import Iterable, Mapping, Sequence
+from importlib.resources import files
+from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import Any
 
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-__all__ = ["ConfigError", "conf_dir", "group_options", "validate_config"]
+__all__ = [
+    "ConfigError",
+    "conf_dir",
+    "config_roots",
+    "group_options",
+    "validate_config",
+    "validate_run",
+]
 
 #: Hydra's own and launcher keys that never appear in our YAML files.
 _HYDRA_KEYS = {"hydra"}
@@ -24,25 +37,68 @@ class ConfigError(ValueError):
 
 
 def conf_dir() -> Path:
-    """The project's ``conf/`` directory (a checkout or an editable install)."""
+    """The project's ``conf/``: ``spatialseg/conf`` in a wheel, the top-level one in a checkout."""
     here = Path(__file__).resolve().parent
     for candidate in (here / "conf", here.parent / "conf"):
         if (candidate / "config.yaml").is_file():
             return candidate
     raise ConfigError(
-        f"spatialseg cannot find its conf/ directory next to {here}; "
-        "install it from a checkout with: pip install -e ."
+        f"spatialseg cannot find its conf/ directory next to {here}; reinstall it "
+        "(pip install . or pip install -e . from a checkout)"
     )
 
 
-def group_options(group: str) -> list[str]:
-    """Sorted option names of a config group (the YAML files in ``conf/<group>/``)."""
-    return sorted(p.stem for p in (conf_dir() / group).glob("*.yaml"))
+def _source_root(schema: str, path: str) -> Traversable | None:
+    """A Hydra config source as a directory (``file://`` or ``pkg://``); None for others."""
+    if schema == "file":
+        return Path(path)
+    if schema == "pkg":
+        with contextlib.suppress(ModuleNotFoundError):
+            return files(path)
+    return None
 
 
-def _groups() -> list[str]:
-    """The project's config groups (``conf/hydra/`` holds Hydra's own launcher configs)."""
-    return sorted(p.name for p in conf_dir().iterdir() if p.is_dir() and p.name != "hydra")
+def config_roots(sources: Iterable[Mapping[str, Any]] | None = None) -> list[Traversable]:
+    """The config directories in Hydra's search order, from its ``runtime.config_sources``
+    (``conf/`` and a user's ``--config-dir`` or ``hydra.searchpath``); None: ``conf/`` alone."""
+    if sources is None:
+        return [conf_dir()]
+    roots = (_source_root(str(s["schema"]), str(s["path"])) for s in sources)
+    return [root for root in roots if root is not None]
+
+
+def _entries(folder: Traversable) -> list[Traversable]:
+    """The files and folders in ``folder``; none if it is not a directory."""
+    return list(folder.iterdir()) if folder.is_dir() else []
+
+
+def group_options(group: str, roots: Sequence[Traversable] | None = None) -> list[str]:
+    """Sorted option names of a config group: the YAML files in ``<root>/<group>/`` of every
+    config directory in ``roots`` (default: ``conf/`` alone)."""
+    return sorted(
+        {
+            entry.name.removesuffix(".yaml")
+            for root in roots or config_roots()
+            for entry in _entries(root / group)
+            if entry.name.endswith(".yaml") and entry.is_file()
+        }
+    )
+
+
+def _groups(roots: Sequence[Traversable]) -> list[str]:
+    """The config groups of ``roots`` (``hydra/`` holds Hydra's own launcher configs)."""
+    names = {e.name for root in roots for e in _entries(root) if e.is_dir()}
+    return sorted(names - {"hydra"})
+
+
+def _load(roots: Sequence[Traversable], relative: str) -> Any:
+    """The YAML file ``relative`` from the first config directory holding it, as Hydra picks."""
+    for root in roots:
+        found = root.joinpath(*relative.split("/"))
+        if found.is_file():
+            with found.open(encoding="utf-8") as stream:
+                return OmegaConf.load(stream)
+    raise ConfigError(f"no config file {relative} in {', '.join(str(r) for r in roots)}")
 
 
 def _check_keys(composed: Any, reference: Any, path: str) -> None:
@@ -55,28 +111,29 @@ def _check_keys(composed: Any, reference: Any, path: str) -> None:
         where = f"{path}.{key}" if path else str(key)
         if key not in reference:
             valid = ", ".join(sorted(str(k) for k in reference))
-            raise ConfigError(
-                f"unknown config key '{where}'; valid keys here: {valid}"
-                + (f". Config groups: {', '.join(_groups())}" if not path else "")
-            )
+            raise ConfigError(f"unknown config key '{where}'; valid keys here: {valid}")
         if not isinstance(composed[key], ListConfig):
             _check_keys(composed[key], reference[key], where)
 
 
 def validate_config(
-    cfg: DictConfig, choices: Mapping[str, str | None], primary: str = "config.yaml"
+    cfg: DictConfig,
+    choices: Mapping[str, str | None],
+    primary: str = "config.yaml",
+    roots: Sequence[Traversable] | None = None,
 ) -> None:
-    """Check ``cfg`` against the primary ``conf/<primary>`` and each chosen group option's YAML.
+    """Check ``cfg`` against the primary ``<primary>`` and each chosen group option's YAML.
 
-    ``choices`` maps group name to the selected option (Hydra's ``runtime.choices``).
+    ``choices`` maps group name to the selected option (Hydra's ``runtime.choices``);
+    ``roots`` are the config directories (default: ``conf/`` alone, see :func:`config_roots`).
     Keys a group option does not define (e.g. ``optimizer.typo``) are rejected too, except
     in groups whose options declare ``_open_: true`` (free-form sections).
     """
-    root = conf_dir()
-    reference = OmegaConf.to_container(OmegaConf.load(root / primary), resolve=False)
+    roots = roots or config_roots()
+    reference = OmegaConf.to_container(_load(roots, primary), resolve=False)
     assert isinstance(reference, dict)
     reference.pop("defaults", None)
-    groups = _groups()
+    groups = _groups(roots)
     for group in groups:
         if group != "hydra":
             reference.setdefault(group, {})
@@ -92,7 +149,7 @@ def validate_config(
     if "scene" not in cfg:
         raise ConfigError(
             "no scene selected; add +scene=NAME with NAME one of: "
-            + ", ".join(group_options("scene"))
+            + ", ".join(group_options("scene", roots))
         )
     for key, value in cfg.items():
         if key in _HYDRA_KEYS:
@@ -101,8 +158,15 @@ def validate_config(
             option = choices.get(str(key))
             if option is None:
                 continue
-            option_ref = OmegaConf.load(root / str(key) / f"{option}.yaml")
+            option_ref = _load(roots, f"{key}/{option}.yaml")
             if isinstance(option_ref, DictConfig) and not option_ref.get("_open_", False):
                 _check_keys(value, option_ref, str(key))
         else:
             _check_keys(value, reference[key], str(key))
+
+
+def validate_run(cfg: DictConfig, primary: str = "config.yaml") -> None:
+    """:func:`validate_config` for the running Hydra job, against the configs its search
+    path holds (a user's own ``--config-dir`` scene is as valid as a shipped one)."""
+    runtime = HydraConfig.get().runtime
+    validate_config(cfg, runtime.choices, primary, config_roots(runtime.config_sources))

@@ -11,13 +11,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from hydra.core.hydra_config import HydraConfig
 from hydra.utils import to_absolute_path
 from omegaconf import DictConfig, OmegaConf
 
 from spatialseg.checks import is_integer
 from spatialseg.cli import launch
-from spatialseg.config import ConfigError, validate_config
+from spatialseg.config import ConfigError, validate_run
 from spatialseg.recording import Recording
 
 __all__ = ["main", "run", "summary"]
@@ -55,7 +54,7 @@ def _output_dir(cfg: DictConfig) -> Path:
 
 def run(cfg: DictConfig) -> Path:
     """Validate the config, simulate, write the recording and its preview; return ``out``."""
-    validate_config(cfg, HydraConfig.get().runtime.choices, primary="simulate.yaml")
+    validate_run(cfg, primary="simulate.yaml")
     if cfg.scene.get("kind") != "simulated":
         raise ConfigError(
             f"scene '{cfg.scene.get('name')}' is not simulated; pick one, e.g. +scene=interior"
