@@ -129,8 +129,8 @@ def scene_figure(scene: str, job: dict[str, Any]) -> Any:
         )
     thetas = np.array([c["theta"] for c in first["clusters"]])
     warped = warped_images(prepared, float(first["t_ref"]), thetas)
-    k = len(first["clusters"])
-    clusters = cluster_image(window.events, labels[index], k)
+    ids = [int(c["id"]) for c in first["clusters"]]  # labels.npy holds these object ids
+    clusters = cluster_image(window.events, labels[index], max(ids) + 1)
     accuracy = first.get("metrics", {}).get("accuracy")
     title = f"{scene}: {len(window.events)} events, {first['iterations']} iterations" + (
         f", accuracy {accuracy:.4f}" if accuracy is not None else ""
@@ -152,6 +152,7 @@ def scene_figure(scene: str, job: dict[str, Any]) -> Any:
         warped,
         first["history"],
         first["units"],
+        ids,
     )
 
 

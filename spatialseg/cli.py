@@ -5,16 +5,26 @@ one ``error:`` line on stderr and exit status 2, never a traceback. Set
 ``SPATIALSEG_DEBUG=1`` to get the full traceback instead. A multirun runs every job; if any
 failed, it ends with one ``error: N of M jobs failed`` line and exit status 1. A config
 option that no config directory holds (``+scene=nosuch``; a user's own go in ``--config-dir``)
-ends in one ``error:`` line listing the options, exit status 2.
+ends in one ``error:`` line listing the options, exit status 2. SIGTERM ends a run like an
+error (exit status 143), so it leaves no temporary files behind.
+
+A run directory holds one run: before it writes (before it validates the config, even), a
+run removes the outputs an earlier run left in a reused ``hydra.run.dir``. The run ends with
+a table of the objects found over the whole recording, the run directory and, with MLflow
+tracking, the command that opens the store.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -46,28 +56,89 @@ def build_optimizer(cfg: DictConfig) -> Any:
         raise ConfigError(f"optimizer: {cause}") from exc
 
 
-def _report(summary: dict[str, Any], out_dir: Path) -> None:
-    """Log the short end-of-run summary: clusters, velocities, accuracy, time."""
+def _plural(n: int, word: str) -> str:
+    """``1 window``, ``3 windows``."""
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"
+
+
+def _windows(ids: Sequence[int], shown: int = 4) -> str:
+    """``window 2``, ``windows 0, 1, 2``, or ``12 windows`` when there are many."""
+    if len(ids) == 1:
+        return f"window {ids[0]}"
+    if len(ids) > shown:
+        return f"{len(ids)} windows"
+    return f"windows {', '.join(map(str, ids))}"
+
+
+def _convergence(windows: Sequence[Mapping[str, Any]]) -> str:
+    """How many windows converged, and why the others stopped (grouped by reason)."""
+    stopped: dict[str, list[int]] = {}
+    for i, w in enumerate(windows):
+        if not w["converged"]:
+            stopped.setdefault(w["stop_reason"], []).append(i)
+    done = len(windows) - sum(map(len, stopped.values()))
+    text = f"{done} of {_plural(len(windows), 'window')} converged"
+    if not stopped:
+        return text
+    return f"{text} ({'; '.join(f'{_windows(ids)}: {why}' for why, ids in stopped.items())})"
+
+
+def _report(summary: Mapping[str, Any], out_dir: Path, tracked: str | None) -> None:
+    """Log the end-of-run summary of the whole recording: its events and windows, a table of
+    its objects, accuracy, time, the run directory and how to open the MLflow run."""
+    windows, objects = summary["windows"], summary["objects"]
+    seen = [o for o in objects if o["n_events"]]
     log.info(
-        "%s: %d events, n_clusters=%s, %d iterations (%s)",
+        "%s: %d events in %s, %d labelled as %s; %d iterations, %s",
         summary["scene"],
         summary["n_events"],
-        summary["n_clusters"],
+        _plural(len(windows), "window"),
+        summary["n_labelled"],
+        _plural(len(seen), "object"),
         summary["iterations"],
-        summary["stop_reason"],
+        _convergence(windows),
     )
-    for c in summary["clusters"]:
-        theta = ", ".join(f"{v:+.4f}" for v in c["theta"])
-        log.info(
-            "  cluster %d: %6d events, theta = [%s] %s",
-            c["id"],
-            c["n_events"],
-            theta,
-            summary["units"],
-        )
+    log.info(
+        "  object   events  windows  velocity [vx, vy, vz] %s: the mean over its windows, "
+        "weighted by its events in each",
+        summary["units"],
+    )
+    for o in seen:
+        span = f"{o['first_window']}-{o['last_window']}"
+        velocity = ", ".join(f"{v:+.4f}" for v in o["velocity"])
+        log.info("  %6d %8d %8s  [%s]", o["id"], o["n_events"], span, velocity)
+    if len(seen) < len(objects):
+        empty = ", ".join(str(o["id"]) for o in objects if not o["n_events"])
+        log.info("  no events: object %s (a window's empty cluster)", empty)
     if "metrics" in summary:
-        log.info("  accuracy %.4f (ground truth)", summary["metrics"]["accuracy"])
-    log.info("  time %.2f s; outputs in %s", summary["timings"]["total"], out_dir)
+        how = "" if len(windows) == 1 else "; each window matched alone, weighted by its events"
+        log.info("  accuracy %.4f (ground truth%s)", summary["metrics"]["accuracy"], how)
+    log.info("  time %.2f s; run directory %s", summary["timings"]["total"], out_dir)
+    if tracked:
+        log.info("  MLflow: %s", tracked)
+
+
+def _restart_log(out_dir: Path) -> None:
+    """Empty this run's log file in ``out_dir`` (Hydra's ``<job>.log``, which it opens to
+    append) of an earlier run's lines; nothing of this run is logged yet."""
+    for handler in logging.getLogger().handlers:
+        if not isinstance(handler, logging.FileHandler) or handler.stream is None:
+            continue
+        if Path(handler.baseFilename).parent.resolve() == out_dir.resolve():
+            with handler.lock or contextlib.nullcontext():
+                handler.stream.seek(0)
+                handler.stream.truncate()
+
+
+def _fresh_run_dir(out_dir: Path) -> None:
+    """Make a reused run directory hold this run only: remove an earlier run's outputs
+    (:func:`spatialseg.results.clear_outputs`) and its lines in the log file."""
+    from spatialseg.results import clear_outputs
+
+    _restart_log(out_dir)
+    stale = clear_outputs(out_dir)
+    if stale:
+        log.info("removed %s of an earlier run from %s", _plural(len(stale), "output"), out_dir)
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -77,10 +148,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from spatialseg.scenes import load_scene
     from spatialseg.tracking import record
 
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    _fresh_run_dir(out_dir)
     validate_run(cfg)
     plain = OmegaConf.to_container(cfg, resolve=True)
     check_config(plain)
-    out_dir = Path(HydraConfig.get().runtime.output_dir)
     start = time.perf_counter()
     if cfg.scene.get("stream"):
         return run_stream(cfg, plain, out_dir)
@@ -105,8 +177,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
         save_result_figures(out_dir, recording, seg)
     write_outputs(out_dir, seg, summary)
-    record(cfg, summary, out_dir)
-    _report(summary, out_dir)
+    _report(summary, out_dir, record(cfg, summary, out_dir))
     return summary
 
 
@@ -117,6 +188,7 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
     from spatialseg.results import (
         ArrayStream,
         ProbabilityStream,
+        data_paths,
         run_summary,
         window_summary,
         write_json,
@@ -131,10 +203,12 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
             f"depth=constant or depth=ground_plane, not depth={plain['depth']['name']}"
         )
     out_dir.mkdir(parents=True, exist_ok=True)
-    labels = ArrayStream(out_dir / "labels.npy", np.int64)
-    probabilities = ProbabilityStream(out_dir / "probabilities.npy")
-    optimizer, windows, handover = build_optimizer(cfg), [], None
-    try:
+    labels_path, probabilities_path, result_path = data_paths(out_dir)
+    with (  # the temporary files go however the block ends
+        ArrayStream(labels_path, np.int64) as labels,
+        ProbabilityStream(probabilities_path) as probabilities,
+    ):
+        optimizer, windows, handover = build_optimizer(cfg), [], None
         stream = stream_scene(plain["scene"], window_events=int(cfg.window.events))
         for w, window in enumerate(stream):
             seed = int(np.random.default_rng([int(cfg.seed), w]).integers(2**31 - 1))
@@ -147,18 +221,13 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
             log.info("window %d: %d events, %.1f s", w, len(window.events), elapsed)
         if not windows:
             raise ValueError(f"{cfg.scene.path or cfg.scene.name}: the file has no events")
-    except BaseException:
-        labels.abort()
-        probabilities.abort()
-        raise
-    timings = {"total": time.perf_counter() - start}
-    summary = run_summary(str(cfg.scene.name), labels.rows, plain, windows, timings)
-    summary["stream"] = True
-    labels.finish()
-    probabilities.finish_objects(handover.boundary.next_id if handover else 1)
-    write_json(out_dir / "result.json", summary)
-    record(cfg, summary, out_dir)
-    _report(summary, out_dir)
+        timings = {"total": time.perf_counter() - start}
+        summary = run_summary(str(cfg.scene.name), labels.rows, plain, windows, timings)
+        summary["stream"] = True
+        labels.finish()
+        probabilities.finish_objects(handover.boundary.next_id if handover else 1)
+    write_json(result_path, summary)
+    _report(summary, out_dir, record(cfg, summary, out_dir))
     return summary
 
 
@@ -173,6 +242,31 @@ def _fail_job(cfg: DictConfig, exc: Exception) -> None:
         log.error("job failed", exc_info=exc)
 
 
+def _terminate(signum: int, frame: object) -> None:
+    """SIGTERM's handler: end the run by unwinding (exit status 128 + 15), so ``finally``
+    blocks and atomic writes remove their temporary files; a second SIGTERM ends it at once."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    print(f"error: terminated by {signal.Signals(signum).name}", file=sys.stderr)
+    raise SystemExit(128 + signum)
+
+
+@contextmanager
+def _exit_on_sigterm() -> Iterator[None]:
+    """While a task runs, SIGTERM raises :class:`SystemExit` instead of ending the process
+    mid-write (the default); a handler a launcher installed (Submitit's) is left alone."""
+    install = (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    )
+    if install:
+        signal.signal(signal.SIGTERM, _terminate)
+    try:
+        yield
+    finally:
+        if install:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def guarded(task: Callable[[DictConfig], object]) -> Callable[[DictConfig], None]:
     """Wrap a Hydra task so a user mistake ends in one ``error:`` line and exit status 2.
 
@@ -184,7 +278,8 @@ def guarded(task: Callable[[DictConfig], object]) -> Callable[[DictConfig], None
         from spatialseg.tracking import mark_job
 
         try:
-            task(cfg)
+            with _exit_on_sigterm():
+                task(cfg)
             mark_job(None)
         except Exception as exc:
             if os.environ.get("SPATIALSEG_DEBUG"):

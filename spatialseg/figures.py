@@ -4,7 +4,7 @@ A run directory holds the labels and ``result.json`` (final thetas, reference ti
 per-iteration history) but not the warped volumes; those are recomputed from the window's
 points (``pipeline.prepare``, deterministic) and the final thetas, so the figure shows
 exactly the run that MLflow recorded. Panels, as in the paper: (a) the window's first
-keyframe and (b) its depth map (the paper's Fig. 6a/7a), (c) events by cluster, (d)-(e) the
+keyframe and (b) its depth map (the paper's Fig. 6a/7a), (c) events by object, (d)-(e) the
 volume warped by each cluster's motion summed over depth (that cluster's object sharp, the
 others blurred), (f)-(g) each cluster's contrast per iteration, (h)-(i) each cluster's theta
 per iteration.
@@ -23,7 +23,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from spatialseg.pipeline import Prepared
-from spatialseg.plots import _cluster_colours
+from spatialseg.plots import object_colours, object_legend
 from spatialseg.recording import DepthMap
 from spatialseg.volume import VolumeObjective
 
@@ -65,15 +65,17 @@ def paper_figure(
     warped: Sequence[np.ndarray],
     history: Mapping[str, Any],
     units: str,
+    ids: Sequence[int] | None = None,
 ) -> Figure:
     """The Figure 6/7 layout for K clusters: top row (a) the scene image (a keyframe, grey),
-    (b) its depth map, (c) events by cluster and K warped images; bottom row K contrast
-    curves and K theta curves (the paper's panels for K = 2).
+    (b) its depth map, (c) events by object (with a legend) and K warped images; bottom row
+    K contrast curves and K theta curves (the paper's panels for K = 2).
 
     ``scene_caption`` titles panel (a) (e.g. ``keyframe at t = 0.0 ms``); ``depth`` is the
     window's depth map, drawn in metres with unknown pixels (NaN or <= 0) blank. ``history``
     is a window's ``result.json`` history: ``per_cluster`` (iterations x K) and ``thetas``
-    (iterations x K x 3), iteration 1 first.
+    (iterations x K x 3), iteration 1 first. ``ids``: each cluster's object id, the labels
+    ``clusters_rgb`` is coloured by (None: 0..K-1).
     """
     per_cluster = np.asarray(history["per_cluster"], dtype=np.float64)
     thetas = np.asarray(history["thetas"], dtype=np.float64)
@@ -84,7 +86,8 @@ def paper_figure(
             f"for {k} clusters; is result.json from the same run?"
         )
     iterations = np.arange(1, per_cluster.shape[0] + 1)
-    colours = _cluster_colours(k)
+    ids = list(range(k)) if ids is None else [int(i) for i in ids]
+    colours = object_colours(ids)
     columns = max(3 + k, 2 * k)
     fig = Figure(figsize=(PANEL_WIDTH * columns, 2 * PANEL_HEIGHT + 0.6), layout="constrained")
     fig.suptitle(title)
@@ -107,11 +110,12 @@ def paper_figure(
     )
     top.colorbar(shown, ax=depth_ax, label="depth (m)", shrink=0.8)
     cluster_ax.imshow(clusters_rgb, interpolation="nearest")
-    cluster_ax.set_title(f"{letters[2]} events by cluster\n(grey: unassigned)")
+    cluster_ax.set_title(f"{letters[2]} events by object")
+    object_legend(cluster_ax, ids, unassigned=True)
     for j, (ax, image) in enumerate(zip(image_axes[3:], warped, strict=True)):
         ax.imshow(image, cmap="gray_r", interpolation="nearest")
         speed = ", ".join(f"{v:+.3f}" for v in thetas[-1, j])
-        ax.set_title(f"{letters[3 + j]} warped by cluster {j}\n[{speed}] {units}")
+        ax.set_title(f"{letters[3 + j]} warped by object {ids[j]}\n[{speed}] {units}")
     for ax in image_axes:
         ax.set_xticks([])
         ax.set_yticks([])
@@ -121,13 +125,13 @@ def paper_figure(
         ax = curve_axes[j]
         ax.plot(iterations, per_cluster[:, j], "o-", color=colours[j])
         ax.set(xlabel="iteration", ylabel="contrast (variance of the VWE)")
-        ax.set_title(f"{letters[3 + k + j]} contrast, cluster {j}")
+        ax.set_title(f"{letters[3 + k + j]} contrast, object {ids[j]}")
     for j in range(k):
         ax = curve_axes[k + j]
         for a in range(thetas.shape[2]):
             ax.plot(iterations, thetas[:, j, a], "o-", label=f"theta_{AXES[a]}")
         ax.set(xlabel="iteration", ylabel=f"theta ({units})")
-        ax.set_title(f"{letters[3 + 2 * k + j]} theta, cluster {j}")
+        ax.set_title(f"{letters[3 + 2 * k + j]} theta, object {ids[j]}")
         ax.legend(fontsize="small")
     return fig
 

@@ -6,14 +6,18 @@ never through pyplot, so plotting works headless and leaves a user's pyplot back
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import matplotlib as mpl
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
+from matplotlib.patches import Patch
 
 from spatialseg.events import EventStream
+from spatialseg.io._atomic import atomic_file
 from spatialseg.recording import Recording
 
 if TYPE_CHECKING:
@@ -23,11 +27,13 @@ __all__ = [
     "cluster_image",
     "event_image",
     "label_shares",
+    "object_colours",
+    "object_legend",
     "save_result_figures",
     "save_scene_preview",
 ]
 
-#: Cluster colours (tab10); unassigned events are drawn grey.
+#: Object colours (tab10, by object id); unassigned events are drawn grey.
 _UNASSIGNED = np.array([0.6, 0.6, 0.6])
 
 #: Red for positive events, blue for negative ones; a pixel with both mixes towards purple.
@@ -89,16 +95,29 @@ def save_scene_preview(recording: Recording, path: str | Path) -> Path:
     return out
 
 
-def _cluster_colours(k: int) -> np.ndarray:
-    """RGB colours for clusters 0..k-1 (tab10, cycled)."""
+def object_colours(ids: Iterable[int]) -> np.ndarray:
+    """RGB colours (n x 3) of object ids (tab10, cycled), the same in every figure."""
     cmap = mpl.colormaps["tab10"]
-    return np.array([cmap(j % 10)[:3] for j in range(k)])
+    return np.array([cmap(int(i) % 10)[:3] for i in ids]).reshape(-1, 3)
+
+
+def object_legend(ax: Axes, ids: Iterable[int], *, unassigned: bool) -> None:
+    """A legend beside an events-by-object image naming each colour's object id (and grey
+    for unassigned events)."""
+    ids = list(ids)
+    handles = [
+        Patch(color=colour, label=f"object {i}")
+        for i, colour in zip(ids, object_colours(ids), strict=True)
+    ]
+    if unassigned:
+        handles.append(Patch(color=_UNASSIGNED, label="unassigned"))
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small")
 
 
 def cluster_image(events: EventStream, labels: np.ndarray, n_clusters: int) -> np.ndarray:
-    """Events coloured by cluster on white (H x W x 3 uint8): each pixel takes the colour of
-    its most frequent label; unassigned (-1) events are grey."""
-    colours = np.vstack([_UNASSIGNED, _cluster_colours(n_clusters)])
+    """Events coloured by label (an object id, 0..n_clusters-1) on white (H x W x 3 uint8):
+    each pixel takes the colour of its most frequent label; unassigned (-1) events are grey."""
+    colours = np.vstack([_UNASSIGNED, object_colours(range(n_clusters))])
     index = events.y.astype(np.int64) * events.width + events.x
     counts = np.zeros((events.width * events.height, n_clusters + 1))
     np.add.at(counts, (index, labels + 1), 1.0)
@@ -123,8 +142,9 @@ def _projected_volumes(window: WindowResult) -> list[np.ndarray]:
 
 
 def _save(fig: Figure, path: Path) -> Path:
-    """Save a figure as PNG and return the path."""
-    fig.savefig(path, dpi=100)
+    """Save a figure as PNG (atomically: a killed run leaves no half-written image)."""
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
     return path
 
 
@@ -133,7 +153,9 @@ def save_result_figures(out_dir: Path, recording: Recording, seg: SegmentationRe
     several; one colour per object id throughout), and per window the volume warped by each
     cluster's motion (one object sharp, the others blurred) and the contrast/theta curves."""
     k = seg.n_objects
-    paths = [_save_clusters(out_dir / "clusters.png", recording, seg.labels, k, recording.name)]
+    whole = f"{recording.name}, all {len(seg.windows)} windows" if len(seg.windows) > 1 else ""
+    title = whole or recording.name
+    paths = [_save_clusters(out_dir / "clusters.png", recording, seg.labels, k, title)]
     for w, window in enumerate(seg.windows):
         suffix = f"_w{w}" if len(seg.windows) > 1 else ""
         if suffix:
@@ -145,12 +167,15 @@ def save_result_figures(out_dir: Path, recording: Recording, seg: SegmentationRe
     return paths
 
 
-def _save_clusters(path: Path, recording: Recording, labels: np.ndarray, k: int, title: str):
-    """The events coloured by cluster (grey: unassigned), as a PNG."""
-    fig = Figure(figsize=(6, 4.8), layout="constrained")
+def _save_clusters(
+    path: Path, recording: Recording, labels: np.ndarray, k: int, title: str
+) -> Path:
+    """The events coloured by object id (grey: unassigned) with a legend, as a PNG."""
+    fig = Figure(figsize=(7.2, 4.8), layout="constrained")
     ax = fig.subplots()
     ax.imshow(cluster_image(recording.events, labels, k), interpolation="nearest")
-    ax.set_title(f"{title}: events by cluster (grey: unassigned)")
+    ax.set_title(f"{title}: events by object")
+    object_legend(ax, np.unique(labels[labels >= 0]), unassigned=bool(np.any(labels < 0)))
     return _save(fig, path)
 
 
@@ -176,22 +201,19 @@ def _window_figures(out_dir: Path, window: WindowResult, suffix: str) -> list[Pa
     fig = Figure(figsize=(6, 4), layout="constrained")
     ax = fig.subplots()
     per_cluster = np.array([r.per_cluster for r in c.history])
-    colours = _cluster_colours(per_cluster.shape[1])
-    for j in range(per_cluster.shape[1]):
-        label = f"object {_object_id(window, j)}"
-        ax.plot(iterations, per_cluster[:, j], "o-", color=colours[j], label=label)
-    ax.set(
-        xlabel="iteration", ylabel="contrast (variance of the VWE)", title="contrast per cluster"
-    )
+    ids = [_object_id(window, j) for j in range(per_cluster.shape[1])]
+    colours = object_colours(ids)
+    for j, obj in enumerate(ids):
+        ax.plot(iterations, per_cluster[:, j], "o-", color=colours[j], label=f"object {obj}")
+    ax.set(xlabel="iteration", ylabel="contrast (variance of the VWE)", title="contrast per object")
     ax.legend()
     paths.append(_save(fig, out_dir / f"variance{suffix}.png"))
 
     thetas = np.array([r.thetas for r in c.history])
     fig = Figure(figsize=(4 * thetas.shape[2], 3.6), layout="constrained")
     for a, ax in enumerate(np.atleast_1d(fig.subplots(1, thetas.shape[2]))):
-        for j in range(thetas.shape[1]):
-            label = f"object {_object_id(window, j)}"
-            ax.plot(iterations, thetas[:, j, a], "o-", color=colours[j], label=label)
+        for j, obj in enumerate(ids):
+            ax.plot(iterations, thetas[:, j, a], "o-", color=colours[j], label=f"object {obj}")
         ax.set(xlabel="iteration", ylabel=f"theta_{'xyz'[a]} ({units})")
     ax.legend()
     paths.append(_save(fig, out_dir / f"theta{suffix}.png"))

@@ -1,33 +1,78 @@
 """A run's outputs: ``labels.npy``, ``probabilities.npy``, ``result.json`` and the figures.
 
-Every file is written to a temporary name and renamed into place, and ``result.json`` is
-written last, so a crashed run never leaves a directory that reads as a finished one.
+Every file is written to a temporary name and renamed into place
+(:func:`spatialseg.io._atomic.atomic_file`), and ``result.json`` is written last, so a
+crashed run never leaves a directory that reads as a finished one; before a run writes,
+:func:`clear_outputs` removes an earlier run's outputs from a reused run directory.
+
+``result.json``'s top level describes the whole run: its events, its objects (one id per
+object across the windows: events, velocity, first and last window), the iterations of all
+windows and whether every window converged; ``windows`` holds each window's clusters,
+convergence, curves and metrics.
 """
 
 from __future__ import annotations
 
 import json
-import os
+import re
 import shutil
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, Self
 
 import numpy as np
 
+from spatialseg.io._atomic import atomic_file
 from spatialseg.metrics import segmentation_metrics
 from spatialseg.pipeline import SegmentationResult, WindowResult, spatial_velocities
 from spatialseg.recording import Recording
 
 __all__ = [
+    "DATA_FILES",
+    "FIGURES",
     "ArrayStream",
     "ProbabilityStream",
+    "clear_outputs",
+    "data_paths",
+    "is_output",
+    "objects_summary",
     "run_summary",
     "summarise",
     "window_summary",
     "write_json",
     "write_outputs",
 ]
+
+#: The data files a run writes into its directory, ``result.json`` last.
+DATA_FILES = ("labels.npy", "probabilities.npy", "result.json")
+
+#: The figures a run writes (:mod:`spatialseg.plots`): ``NAME.png``, and with several
+#: windows ``NAME_w<window>.png``.
+FIGURES = ("clusters", "warped_volumes", "variance", "theta")
+
+_FIGURE = re.compile(rf"(?:{'|'.join(FIGURES)})(?:_w\d+)?\.png")
+
+#: A hidden temporary of an output: ``.NAME.<hex>.tmp`` (an atomic write), ``.NAME.tmp``
+#: (the same, before it took a random part) or ``.NAME.raw`` (a streamed run's rows).
+_TEMPORARY = re.compile(r"\.(?P<name>.+?)(?:\.[0-9a-f]{12})?\.(?:tmp|raw)")
+
+
+def is_output(name: str) -> bool:
+    """True for the name of a file a run writes into its directory, or of its temporary."""
+    hidden = _TEMPORARY.fullmatch(name)
+    plain = hidden["name"] if hidden else name
+    return plain in DATA_FILES or _FIGURE.fullmatch(plain) is not None
+
+
+def clear_outputs(out_dir: Path) -> list[Path]:
+    """Remove an earlier run's outputs and temporaries from ``out_dir`` (a reused run
+    directory), so none survives beside a new run's config; other files are left alone."""
+    if not out_dir.is_dir():
+        return []
+    stale = sorted(p for p in out_dir.iterdir() if is_output(p.name) and not p.is_dir())
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale
 
 
 def window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) -> dict[str, Any]:
@@ -80,7 +125,7 @@ def summarise(
     cfg: Mapping[str, Any],
     timings: Mapping[str, float],
 ) -> dict[str, Any]:
-    """The content of ``result.json``; the first window's fields are also at the top level."""
+    """The content of ``result.json``: the whole run, each window below in ``windows``."""
     gt = recording.ground_truth
     windows = []
     for res, index in zip(seg.windows, seg.indices, strict=True):
@@ -99,19 +144,55 @@ def run_summary(
     windows: list[dict[str, Any]],
     timings: Mapping[str, float],
 ) -> dict[str, Any]:
-    """The run-level fields of ``result.json`` around the per-window summaries; the first
-    window's clusters and convergence are repeated at the top level."""
-    first = windows[0]
+    """The whole run's fields of ``result.json`` around the per-window summaries: events,
+    objects (:func:`objects_summary`), all windows' iterations, and whether all converged."""
+    objects = objects_summary(windows)
+    labelled = sum(o["n_events"] for o in objects)
     return {
         "scene": name,
         "n_events": int(n_events),
+        "n_labelled": labelled,
+        "n_unassigned": int(n_events) - labelled,  # with any events outside every window
+        "n_windows": len(windows),
+        "n_objects": len(objects),
         "n_clusters": cfg["n_clusters"],
         "model": cfg["model"]["name"],
         "objective": cfg["objective"]["name"],
         "optimizer": cfg["optimizer"].get("_target_", ""),
-        **{k: first[k] for k in ("clusters", "units", "iterations", "converged", "stop_reason")},
+        "units": windows[0]["units"] if windows else None,  # the model's, in every window
+        "objects": objects,
+        "iterations": sum(w["iterations"] for w in windows),
+        "converged": all(w["converged"] for w in windows),
         "timings": {k: round(float(v), 6) for k, v in timings.items()},
         "windows": windows,
+    }
+
+
+def objects_summary(windows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Each object's whole-run entry, by id, from the windows' clusters: its events, its
+    velocity and the first and last window it appears in (:func:`_object_entry`)."""
+    seen: dict[int, list[tuple[int, int, list[float]]]] = {}
+    for w, window in enumerate(windows):
+        for c in window["clusters"]:
+            seen.setdefault(int(c["id"]), []).append((w, int(c["n_events"]), c["theta"]))
+    return [_object_entry(obj, seen[obj]) for obj in sorted(seen)]
+
+
+def _object_entry(obj: int, seen: list[tuple[int, int, list[float]]]) -> dict[str, Any]:
+    """One object from its ``(window, events, velocity)`` per window: the velocity is the
+    mean of its windows' velocities weighted by its events in each (the plain mean for an
+    object without events), so a window it barely appears in counts little."""
+    windows = [w for w, _, _ in seen]
+    counts = np.array([n for _, n, _ in seen], dtype=np.float64)
+    weights = counts if counts.sum() > 0 else np.ones_like(counts)
+    velocity = np.average(np.array([v for _, _, v in seen]), axis=0, weights=weights)
+    return {
+        "id": obj,
+        "n_events": int(counts.sum()),
+        "velocity": velocity.tolist(),
+        "first_window": min(windows),
+        "last_window": max(windows),
+        "n_windows": len(windows),
     }
 
 
@@ -124,20 +205,21 @@ def _aggregate_metrics(windows: list[dict[str, Any]]) -> dict[str, Any]:
     return {k: float(np.average([w["metrics"][k] for w in windows], weights=weights)) for k in keys}
 
 
-def _atomic_save(path: Path, write: Any) -> None:
-    """Write through a temporary file in the same directory, then rename into place."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
+def _atomic_save(path: Path, write: Callable[[IO[bytes]], object]) -> None:
+    """Write through a temporary sibling (:func:`atomic_file`), then rename into place."""
+    with atomic_file(path) as tmp, open(tmp, "wb") as f:
         write(f)
-    os.replace(tmp, path)
+
+
+def data_paths(out_dir: Path) -> tuple[Path, Path, Path]:
+    """The paths of ``labels.npy``, ``probabilities.npy`` and ``result.json`` in ``out_dir``."""
+    labels, probs, result = (out_dir / name for name in DATA_FILES)
+    return labels, probs, result
 
 
 def write_outputs(out_dir: Path, seg: SegmentationResult, summary: Mapping[str, Any]) -> list[Path]:
     """Write labels, probabilities and result.json (last) into ``out_dir``."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    labels, probs, result = (
-        out_dir / n for n in ("labels.npy", "probabilities.npy", "result.json")
-    )
+    labels, probs, result = data_paths(out_dir)
     _atomic_save(labels, lambda f: np.save(f, seg.labels.astype(np.int64)))
     _atomic_save(probs, lambda f: np.save(f, seg.probabilities.astype(np.float32)))
     write_json(result, summary)
@@ -152,12 +234,24 @@ def write_json(path: Path, summary: Mapping[str, Any]) -> None:
 
 class ArrayStream:
     """Rows appended window by window to a temporary file, then written as one ``.npy``
-    (atomically, copied in blocks), so a streamed run never holds all labels in memory."""
+    (atomically, copied in blocks), so a streamed run never holds all labels in memory.
+
+    Used as a context manager, it removes its temporary file however the block ends (an
+    error, Ctrl-C, or a SIGTERM that :func:`spatialseg.cli.guarded` turns into an exit).
+    """
 
     def __init__(self, path: Path, dtype: Any, width: int | None = None) -> None:
         self.path, self.dtype, self.width, self.rows = path, np.dtype(dtype), width, 0
         self._raw_path = path.with_name(f".{path.name}.raw")
-        self._raw = open(self._raw_path, "wb")  # noqa: SIM115 (closed by finish)
+        self._raw = open(self._raw_path, "wb")  # noqa: SIM115 (closed by finish or abort)
+
+    def __enter__(self) -> Self:
+        """The stream, whose temporary file :meth:`__exit__` removes."""
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Remove the temporary file (already gone after :meth:`finish`)."""
+        self.abort()
 
     def append(self, rows: np.ndarray) -> None:
         """Append rows (N, or N x width) in the stream's dtype."""
@@ -166,7 +260,7 @@ class ArrayStream:
         self.rows += len(block)
 
     def abort(self) -> None:
-        """Drop the appended rows (a failed run leaves no partial output)."""
+        """Drop the appended rows (a failed run leaves no partial output); idempotent."""
         self._raw.close()
         self._raw_path.unlink(missing_ok=True)
 

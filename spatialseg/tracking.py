@@ -19,8 +19,9 @@ import contextlib
 import json
 import logging
 import os
+import shlex
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,15 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["SweepCallback", "SweepTally", "last_sweep", "mark_job", "record", "record_failure"]
+__all__ = [
+    "SweepCallback",
+    "SweepTally",
+    "browse_hint",
+    "last_sweep",
+    "mark_job",
+    "record",
+    "record_failure",
+]
 
 log = logging.getLogger("spatialseg")
 
@@ -108,24 +117,48 @@ def _curves(window: Mapping[str, Any], prefix: str) -> Iterator[tuple[str, float
                 yield f"{prefix}iter/theta{j}_{axis}", value, step
 
 
+def _contrast(window: Mapping[str, Any]) -> float:
+    """A window's total contrast: the sum of its clusters' final variances."""
+    return float(sum(c["variance"] for c in window["clusters"]))
+
+
+def _stage_times(windows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    """Each stage's seconds (prepare, init, cluster, ...) summed over the windows."""
+    totals: dict[str, float] = {}
+    for window in windows:
+        for key, seconds in window["timings"].items():
+            totals[key] = totals.get(key, 0.0) + seconds
+    return totals
+
+
+def _window_finals(window: Mapping[str, Any], prefix: str) -> Iterator[tuple[str, float]]:
+    """``(key, value)`` of one window's final contrast per object, iterations, convergence."""
+    yield f"{prefix}variance", _contrast(window)
+    for c in window["clusters"]:
+        yield f"{prefix}variance_object{c['id']}", c["variance"]
+    yield f"{prefix}iterations", window["iterations"]
+    yield f"{prefix}converged", float(window["converged"])
+
+
 def _finals(summary: Mapping[str, Any]) -> Iterator[tuple[str, float]]:
-    """``(key, value)`` of the final metrics: variance, iterations, accuracy, IoU, times."""
-    clusters = summary["clusters"]
-    yield "variance", sum(c["variance"] for c in clusters)
-    for c in clusters:
-        yield f"variance_cluster{c['id']}", c["variance"]
+    """``(key, value)`` of the final metrics of the whole run (``variance``: the total
+    contrast summed over the windows; ``iterations``: all windows'; ``converged``: every
+    window), accuracy, IoU and times, then each window's under ``window<i>/``."""
+    windows = summary["windows"]
+    yield "variance", sum(_contrast(w) for w in windows)
     yield "iterations", summary["iterations"]
     yield "converged", float(summary["converged"])
+    yield "n_objects", summary["n_objects"]
     metrics = summary.get("metrics", {})
     for key in ("accuracy", "mean_iou", "unassigned_share"):
         if metrics.get(key) is not None:
             yield key, metrics[key]
     for obj, iou in (metrics.get("iou") or {}).items():
         yield f"iou_object{obj}", iou
-    for key, seconds in summary["timings"].items():
+    for key, seconds in {**summary["timings"], **_stage_times(windows)}.items():
         yield f"time_{key}", seconds
-    for key, seconds in summary["windows"][0]["timings"].items():
-        yield f"time_{key}", seconds
+    for i, window in enumerate(windows):
+        yield from _window_finals(window, f"window{i}/")
 
 
 def _metrics(summary: Mapping[str, Any]) -> list[Any]:
@@ -183,11 +216,20 @@ def _start_run(cfg: DictConfig, settings: DictConfig) -> tuple[Any, str]:
     return client, run.info.run_id
 
 
-def record(cfg: DictConfig, summary: Mapping[str, Any], out_dir: Path) -> None:
-    """Record a finished run in MLflow; warn in one line if the store is unavailable."""
+def browse_hint(uri: str, run_id: str) -> str:
+    """How to look at run ``run_id`` of the store at ``uri``: a server's address to open,
+    else the ``mlflow ui`` command that serves the store."""
+    if uri.startswith(("http://", "https://")):
+        return f"run {run_id}; open {uri}"
+    return f"run {run_id}; to browse: mlflow ui --backend-store-uri {shlex.quote(uri)}"
+
+
+def record(cfg: DictConfig, summary: Mapping[str, Any], out_dir: Path) -> str | None:
+    """Record a finished run in MLflow and return how to open it (:func:`browse_hint`);
+    None when tracking is off, or the store is unavailable (a one-line warning)."""
     settings = _settings(cfg)
     if settings is None:
-        return
+        return None
     try:
         client, run_id = _start_run(cfg, settings)
         try:
@@ -199,6 +241,8 @@ def record(cfg: DictConfig, summary: Mapping[str, Any], out_dir: Path) -> None:
         client.set_terminated(run_id, "FINISHED")
     except Exception as exc:
         _warn(exc)
+        return None
+    return browse_hint(str(client.tracking_uri), run_id)
 
 
 def record_failure(cfg: DictConfig, error: BaseException) -> None:

@@ -3,11 +3,17 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from spatialseg.results import is_output
 from tests.helpers import run_module
 from tests.test_cli import spatialseg
 
@@ -29,8 +35,30 @@ def recording_dir(tmp_path_factory):
     return out
 
 
+#: A log line of the final object table: id, events, first-last window, velocity.
+OBJECT_ROW = re.compile(r"\]\[spatialseg\]\[INFO\] -\s+(\d+)\s+(\d+)\s+(\d+)-(\d+)\s+\[")
+
+
+def _stale_run_dir(out: Path) -> None:
+    """A run directory an earlier run (killed mid-way) left, with a user's own file."""
+    (out / ".hydra").mkdir(parents=True)
+    (out / "result.json").write_text('{"scene": "earlier"}')
+    for name in ("labels.npy", "clusters_w7.png", ".labels.npy.raw", ".result.json.tmp"):
+        (out / name).write_bytes(b"earlier")
+    (out / "notes.txt").write_text("mine")
+    (out / "cli.log").write_text("STALE LOG LINE\n")
+
+
+def _object_table(stdout: str) -> dict[int, tuple[int, int, int]]:
+    """The final table's rows: object id -> (events, first window, last window)."""
+    rows = [tuple(map(int, m.groups())) for m in map(OBJECT_ROW.search, stdout.splitlines()) if m]
+    return {obj: (n, first, last) for obj, n, first, last in rows}
+
+
 def test_simulated_scene_run_writes_all_outputs(tmp_path):
+    """Into a reused run directory: every file of the earlier run is replaced or gone."""
     out = tmp_path / "run"
+    _stale_run_dir(out)
     res = spatialseg("+scene=interior", "window.events=4000", f"hydra.run.dir={out}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     result = json.loads((out / "result.json").read_text())
@@ -40,15 +68,75 @@ def test_simulated_scene_run_writes_all_outputs(tmp_path):
     assert labels.shape == (12000,) and probs.shape == (12000, 2) and probs.dtype == np.float32
     assert len(result["windows"]) == 3
     assert set(np.unique(labels)) <= {-1, 0, 1}
-    assert [c["id"] for c in result["clusters"]] == [0, 1]
-    assert all(len(c["theta"]) == 3 and np.isfinite(c["variance"]) for c in result["clusters"])
+    first = result["windows"][0]["clusters"]
+    assert [c["id"] for c in first] == [0, 1]
+    assert all(len(c["theta"]) == 3 and np.isfinite(c["variance"]) for c in first)
     assert result["metrics"]["accuracy"] > 0.9
     assert {"load", "segment", "total"} <= set(result["timings"])
     assert (out / "clusters.png").stat().st_size > 1000
     for w in range(3):  # per window, suffixed
         for png in ("clusters", "warped_volumes", "variance", "theta"):
             assert (out / f"{png}_w{w}.png").stat().st_size > 1000
-    assert "cluster 0" in res.stderr + res.stdout
+    # the earlier run's outputs are gone, the user's file and Hydra's config stay
+    assert result["scene"] == "interior"
+    assert not (out / "clusters_w7.png").exists() and (out / "notes.txt").read_text() == "mine"
+    assert not [p.name for p in out.glob(".*") if p.name != ".hydra"]
+    assert (out / ".hydra" / "config.yaml").is_file()
+    assert "STALE LOG LINE" not in (out / "cli.log").read_text()
+    assert "removed 5 outputs of an earlier run" in res.stdout
+    assert all(is_output(p.name) for p in out.iterdir() if p.suffix in (".png", ".npy", ".json"))
+
+
+def test_run_summary_and_result_json_describe_the_whole_run(tmp_path):
+    """The final table and result.json's top level count every window's events by object
+    id, as labels.npy does; the per-window details are under windows."""
+    out = tmp_path / "run"
+    res = spatialseg(
+        "+scene=interior",
+        "window.events=2000",
+        "tracking=none",
+        "output.plots=false",
+        f"hydra.run.dir={out}",
+        cwd=tmp_path,
+    )
+    assert res.returncode == 0, res.stderr
+    labels = np.load(out / "labels.npy")
+    counts = np.bincount(labels[labels >= 0])
+    result = json.loads((out / "result.json").read_text())
+    windows = result["windows"]
+    assert result["n_events"] == labels.size == sum(w["n_events"] for w in windows) == 6000
+    assert result["n_objects"] == len(result["objects"]) == len(counts) >= 2
+    assert [o["id"] for o in result["objects"]] == list(range(len(counts)))
+    assert [o["n_events"] for o in result["objects"]] == counts.tolist()
+    assert result["n_labelled"] == int(np.sum(labels >= 0)) == sum(counts)
+    assert result["iterations"] == sum(w["iterations"] for w in windows) > windows[0]["iterations"]
+    assert result["converged"] == all(w["converged"] for w in windows)
+    assert "clusters" not in result  # the clusters are per window
+    table = _object_table(res.stdout)
+    assert {obj: n for obj, (n, _, _) in table.items()} == {
+        i: n for i, n in enumerate(counts.tolist()) if n
+    }
+    for o in result["objects"]:
+        assert table[o["id"]][1:] == (o["first_window"], o["last_window"])
+    assert sum(n for n, _, _ in table.values()) == result["n_labelled"]
+    end = res.stdout.strip().splitlines()[-1]
+    assert end.endswith(f"run directory {out}") and "mlflow ui" not in res.stdout
+    assert "weighted by its events" in res.stdout and f"{len(windows)} windows" in res.stdout
+
+
+def test_a_run_that_fails_early_leaves_no_earlier_outputs(tmp_path):
+    """A config mistake found after Hydra wrote the new .hydra/ config: no earlier result
+    stays beside it."""
+    out = tmp_path / "run"
+    _stale_run_dir(out)
+    res = spatialseg(
+        "+scene=interior", "init.tiles.refit=nope", f"hydra.run.dir={out}", cwd=tmp_path
+    )
+    assert res.returncode == 2 and "init.tiles.refit: unknown optimizer" in res.stderr
+    assert res.stderr.strip().count("\n") == 0 and "Traceback" not in res.stderr
+    assert sorted(p.name for p in out.iterdir()) == [".hydra", "cli.log", "notes.txt"]
+    assert "nope" in (out / ".hydra" / "overrides.yaml").read_text()
+    assert "STALE LOG LINE" not in (out / "cli.log").read_text()
 
 
 def test_recording_without_ground_truth(recording_dir, tmp_path):
@@ -66,7 +154,7 @@ def test_recording_without_ground_truth(recording_dir, tmp_path):
     )
     assert res.returncode == 0, res.stderr
     result = json.loads((out / "result.json").read_text())
-    assert "metrics" not in result and len(result["clusters"]) == 2
+    assert "metrics" not in result and len(result["windows"][0]["clusters"]) == 2
     assert np.load(out / "labels.npy").shape == (3000,)
 
 
@@ -153,3 +241,75 @@ def test_streamed_run_segments_window_by_window(recording_dir, tmp_path):
     assert not (tmp_path / "bad" / "labels.npy").exists()
     nocam = spatialseg(*common, "depth=constant", f"hydra.run.dir={tmp_path / 'c'}", cwd=tmp_path)
     assert nocam.returncode == 2 and "needs the camera" in nocam.stderr
+
+
+STREAM = ("+scene=recording", "scene.stream=true", "scene.fov_deg=60", "depth=constant")
+
+
+def test_streamed_run_failing_mid_way_leaves_no_temporary_files(recording_dir, tmp_path):
+    """A bad line in the file's third window: the rows of the windows before are dropped."""
+    bad = tmp_path / "bad"
+    shutil.copytree(recording_dir, bad)
+    lines = (bad / "events.txt").read_text().splitlines()
+    t, x, _, p = lines[2499].split()
+    lines[2499] = f"{t} {x} 400 {p}"  # y outside the 260-row sensor
+    (bad / "events.txt").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "run"
+    res = spatialseg(
+        *STREAM,
+        f"scene.path={bad}",
+        "window.events=1000",
+        "tracking=none",
+        f"hydra.run.dir={out}",
+        cwd=tmp_path,
+    )
+    assert res.returncode == 2 and "events.txt line 2500: y=400" in res.stderr
+    assert "window 0: 1000 events" in res.stdout  # it failed after a window was written
+    assert sorted(p.name for p in out.iterdir()) == [".hydra", "cli.log"]
+
+
+def test_killed_streamed_run_leaves_no_temporary_files(recording_dir, tmp_path):
+    """SIGTERM mid-way (a job scheduler's kill): exit status 143, no hidden .raw files."""
+    out = tmp_path / "run"
+    args = (*STREAM, f"scene.path={recording_dir}", "window.events=1000", "tracking=none")
+    command = [sys.executable, "-m", "spatialseg", *args, f"hydra.run.dir={out}"]
+    with subprocess.Popen(
+        command, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    ) as proc:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # the first window's rows are in the temporary files
+            if "[spatialseg][INFO] - window 0: 1000 events" in line:
+                break
+        assert (out / ".labels.npy.raw").is_file()
+        proc.send_signal(signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, stderr
+    assert stderr.strip() == "error: terminated by SIGTERM"
+    assert sorted(p.name for p in out.iterdir()) == [".hydra", "cli.log"]
+
+
+def test_summary_table_names_objects_without_events_apart(caplog, tmp_path):
+    """An empty cluster's object (a new id, no events) is named on one line, not a row."""
+    from spatialseg.cli import _report
+    from spatialseg.results import run_summary
+
+    def window(clusters, converged):
+        theta = [1.0, 0.0, 0.0]
+        return {
+            "clusters": [{"id": i, "n_events": n, "theta": theta} for i, n in clusters],
+            "units": "m/s",
+            "iterations": 20,
+            "converged": converged,
+            "stop_reason": "converged" if converged else "iteration limit 20 reached",
+        }
+
+    cfg = {"n_clusters": 2, "model": {"name": "spatial"}, "objective": {"name": "variance"}}
+    windows = [window([(0, 0), (1, 500)], False), window([(2, 0), (1, 480)], True)]
+    summary = run_summary("s", 1000, {**cfg, "optimizer": {}}, windows, {"total": 1.0})
+    with caplog.at_level("INFO", logger="spatialseg"):
+        _report(summary, tmp_path, None)
+    lines = caplog.messages
+    assert lines[0].startswith("s: 1000 events in 2 windows, 980 labelled as 1 object; 40 ")
+    assert lines[0].endswith("1 of 2 windows converged (window 0: iteration limit 20 reached)")
+    assert _object_table("\n".join(f"][spatialseg][INFO] - {m}" for m in lines)) == {1: (980, 0, 1)}
+    assert "  no events: object 0, 2 (a window's empty cluster)" in lines

@@ -11,6 +11,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from spatialseg.config import conf_dir
+from spatialseg.tracking import browse_hint
 from tests.test_cli import spatialseg
 
 FAST = ("window.events=3000", "output.plots=false")
@@ -44,11 +45,22 @@ def test_single_run_is_one_mlflow_run(tmp_path):
     assert run.data.params["clustering.evals_per_step"] == str(default)
     assert run.data.params["window.events"] == "3000"
     result = json.loads((out / "result.json").read_text())
-    assert run.data.metrics["iterations"] == result["iterations"]
-    assert run.data.metrics["accuracy"] == pytest.approx(result["metrics"]["accuracy"])
+    windows, metrics = result["windows"], run.data.metrics
+    assert len(windows) == 3  # window.count=3: each window's values by its prefix
+    # the run's values are the whole run's, not its first window's
+    assert metrics["iterations"] == result["iterations"] == sum(w["iterations"] for w in windows)
+    contrast = [sum(c["variance"] for c in w["clusters"]) for w in windows]
+    assert metrics["variance"] == pytest.approx(sum(contrast))
+    assert metrics["converged"] == float(all(w["converged"] for w in windows))
+    assert metrics["n_objects"] == result["n_objects"]
+    assert metrics["time_cluster"] == pytest.approx(sum(w["timings"]["cluster"] for w in windows))
+    assert metrics["accuracy"] == pytest.approx(result["metrics"]["accuracy"])
     client = MlflowClient(f"sqlite:///{db}")
-    assert len(result["windows"]) == 3  # window.count=3: each window's curves by its prefix
-    for i, window in enumerate(result["windows"]):
+    for i, window in enumerate(windows):
+        assert metrics[f"window{i}/iterations"] == window["iterations"]
+        assert metrics[f"window{i}/variance"] == pytest.approx(contrast[i])
+        for c in window["clusters"]:
+            assert metrics[f"window{i}/variance_object{c['id']}"] == pytest.approx(c["variance"])
         history = client.get_metric_history(run.info.run_id, f"window{i}/iter/variance_total")
         assert [m.value for m in history] == pytest.approx(window["history"]["total"])
         assert [m.step for m in history] == list(range(1, len(history) + 1))
@@ -56,6 +68,11 @@ def test_single_run_is_one_mlflow_run(tmp_path):
         assert len(thetas) == len(history)
     artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
     assert {"result.json", "labels.npy", "config.yaml"} <= artifacts
+    end = res.stdout.strip().splitlines()[-2:]  # the run directory, then how to open the run
+    assert end[0].endswith(f"run directory {out}")
+    assert end[1].endswith(
+        f"MLflow: run {run.info.run_id}; to browse: mlflow ui --backend-store-uri sqlite:///{db}"
+    )
 
 
 def test_parallel_multirun_has_a_parent_and_a_failed_child(tmp_path):
@@ -105,6 +122,19 @@ def test_unreachable_store_keeps_the_result(tmp_path):
     lines = (res.stdout + res.stderr).splitlines()
     warnings = [line for line in lines if "WARNING" in line]
     assert len(warnings) == 1 and "tracking" in warnings[0], warnings
+    assert "MLflow:" not in res.stdout  # no run to open
+
+
+@pytest.mark.parametrize(
+    ("uri", "hint"),
+    [
+        ("sqlite:////data/my runs/mlflow.db", "mlflow ui --backend-store-uri 'sqlite:////data/my"),
+        ("file:///data/mlruns", "mlflow ui --backend-store-uri file:///data/mlruns"),
+        ("http://host:5000", "open http://host:5000"),
+    ],
+)
+def test_browse_hint_names_the_store(uri, hint):
+    assert browse_hint(uri, "abc").startswith("run abc; ") and hint in browse_hint(uri, "abc")
 
 
 SWEEP_DIES = """
