@@ -1,4 +1,5 @@
-"""Helpers shared by the experiment scripts: compose the project's config, write results."""
+"""Helpers shared by the experiment scripts (``compose_config`` and ``simulated_scenes`` are
+:mod:`spatialseg.config`'s, shared with the Python API), write results."""
 
 from __future__ import annotations
 
@@ -8,10 +9,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
-from spatialseg.config import conf_dir, group_options
+from spatialseg.config import compose_config, simulated_scenes
 from spatialseg.events import EventStream
 
 __all__ = [
@@ -23,13 +22,6 @@ __all__ = [
     "synthetic_events",
     "write_json",
 ]
-
-
-def compose_config(*overrides: str) -> dict[str, Any]:
-    """The composed run config (as the command line would build it) as a plain dict."""
-    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-        cfg = compose("config", overrides=list(overrides))
-    return OmegaConf.to_container(cfg, resolve=True)
 
 
 def split_overrides(text: str) -> list[str]:
@@ -44,14 +36,6 @@ def split_overrides(text: str) -> list[str]:
         else:
             current += char
     return [p for p in (*parts, current) if p]
-
-
-def simulated_scenes() -> list[str]:
-    """Names of the shipped scenes that the simulator produces."""
-    root = conf_dir() / "scene"
-    return [
-        s for s in group_options("scene") if "kind: simulated" in (root / f"{s}.yaml").read_text()
-    ]
 
 
 def median_range(values: list[float | None], fmt: str) -> str:

@@ -1,7 +1,48 @@
-"""spatialseg: segment an event camera's stream by 3-D motion (EDPA + volume of warped events)."""
+"""spatialseg: segment an event camera's stream by 3-D motion (EDPA + volume of warped events).
+
+The Python API (:mod:`spatialseg.api`): :func:`simulate` or :func:`read` a Recording,
+:func:`segment` it (or :class:`MotionSegmenter`), :func:`write` it.
+"""
+
+from importlib import import_module
+from typing import TYPE_CHECKING, Any
 
 from spatialseg.events import EventStream
 from spatialseg.recording import Camera, DepthMap, GroundTruth, Keyframe, Recording
 
-__all__ = ["Camera", "DepthMap", "EventStream", "GroundTruth", "Keyframe", "Recording"]
+if TYPE_CHECKING:
+    from spatialseg.api import MotionSegmenter, Segmentation, read, segment, simulate, write
+
+__all__ = [
+    "Camera",
+    "DepthMap",
+    "EventStream",
+    "GroundTruth",
+    "Keyframe",
+    "MotionSegmenter",
+    "Recording",
+    "Segmentation",
+    "read",
+    "segment",
+    "simulate",
+    "write",
+]
 __version__ = "0.1.0"
+
+#: The API's names, imported on first use (:func:`__getattr__`): the API loads the pipeline.
+_API = ("MotionSegmenter", "Segmentation", "read", "segment", "simulate", "write")
+
+# The simulator subpackage shares its name with the API's simulate(). Imported now, it
+# binds the package attribute ``simulate`` here and never again, so the name is freed for
+# the function whichever of the two a user imports first.
+import_module("spatialseg.simulate")
+del globals()["simulate"]
+
+
+def __getattr__(name: str) -> Any:
+    """The API's names (:mod:`spatialseg.api`), imported on first use (PEP 562)."""
+    if name not in _API:
+        raise AttributeError(f"module 'spatialseg' has no attribute {name!r}")
+    value = getattr(import_module("spatialseg.api"), name)
+    globals()[name] = value
+    return value

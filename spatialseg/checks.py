@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["integer_setting", "is_integer", "optional_positive"]
+__all__ = ["integer_setting", "is_integer", "number_setting", "optional_positive"]
 
 
 def is_integer(value: Any, minimum: int) -> bool:
@@ -41,3 +41,22 @@ def integer_setting(
         note = f" ({hint})" if hint else ""
         raise ValueError(f"{key} must be {expected}{note}, got {value!r}")
     return int(value)
+
+
+def number_setting(
+    value: Any, key: str, minimum: float | None = None, *, optional: bool = False, hint: str = ""
+) -> float | None:
+    """``value`` as a finite float (>= ``minimum`` if given; None for null when ``optional``);
+    else a one-line ValueError that names the setting ``key`` (``hint``, e.g. "0: off", in
+    brackets)."""
+    if optional and value is None:
+        return None
+    number = isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool
+    )
+    if not number or not np.isfinite(value) or (minimum is not None and not value >= minimum):
+        expected = "a number" + ("" if minimum is None else f" >= {minimum:g}")
+        expected += " or null" if optional else ""
+        note = f" ({hint})" if hint else ""
+        raise ValueError(f"{key} must be {expected}{note}, got {value!r}")
+    return float(value)

@@ -33,11 +33,11 @@ import hydra
 import numpy as np
 from hydra._internal.utils import run_and_report
 from hydra.core.hydra_config import HydraConfig
-from hydra.errors import InstantiationException, MissingConfigException, SearchPathException
+from hydra.errors import MissingConfigException, SearchPathException
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from spatialseg.config import ConfigError, conf_dir, validate_run
+from spatialseg.config import build_optimizer, conf_dir, validate_run
 
 __all__ = ["guarded", "launch", "main", "run"]
 
@@ -45,15 +45,6 @@ log = logging.getLogger("spatialseg")
 
 #: Exceptions that signal a user mistake (bad input or config), reported in one line.
 USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, PermissionError)
-
-
-def build_optimizer(cfg: DictConfig) -> Any:
-    """Instantiate the configured optimiser, turning a bad hyperparameter into one line."""
-    try:
-        return hydra.utils.instantiate(cfg.optimizer)
-    except InstantiationException as exc:
-        cause = exc.__cause__ or exc
-        raise ConfigError(f"optimizer: {cause}") from exc
 
 
 def _plural(n: int, word: str) -> str:

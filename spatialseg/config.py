@@ -10,20 +10,28 @@ directories (``--config-dir DIR``, ``hydra.searchpath=[file://DIR]``).
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from importlib.resources import files
 from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import Any
 
+import hydra
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import InstantiationException
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 __all__ = [
     "ConfigError",
+    "build_optimizer",
+    "check_option",
+    "compose_config",
     "conf_dir",
     "config_roots",
     "group_options",
+    "simulated_scenes",
     "validate_config",
     "validate_run",
 ]
@@ -83,6 +91,55 @@ def group_options(group: str, roots: Sequence[Traversable] | None = None) -> lis
             if entry.name.endswith(".yaml") and entry.is_file()
         }
     )
+
+
+def check_option(group: str, name: Any, key: str) -> str:
+    """``name`` if it is an option of the config group ``group`` (``conf/<group>/NAME.yaml``);
+    else a one-line ConfigError naming the setting ``key`` and listing the options."""
+    options = group_options(group)
+    if not isinstance(name, str) or name not in options:
+        raise ConfigError(f"{key}: unknown {group} {name!r}; choose from {', '.join(options)}")
+    return name
+
+
+def simulated_scenes() -> list[str]:
+    """Names of the shipped scenes that the simulator produces (``kind: simulated``)."""
+    roots = config_roots()
+    return [
+        s
+        for s in group_options("scene")
+        if _load(roots, f"scene/{s}.yaml").get("kind") == "simulated"
+    ]
+
+
+@contextlib.contextmanager
+def _hydra_set_aside() -> Iterator[None]:
+    """A running Hydra app's global state set aside for a compose, and restored after."""
+    running = GlobalHydra.instance().hydra
+    GlobalHydra.instance().clear()
+    try:
+        yield
+    finally:
+        GlobalHydra.instance().hydra = running
+
+
+def compose_config(*overrides: str) -> dict[str, Any]:
+    """The run config composed from ``conf/`` with Hydra ``overrides``, as the command line
+    builds it, as a plain dict (also inside a running Hydra app: its state is restored)."""
+    with _hydra_set_aside(), initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=list(overrides))
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    assert isinstance(plain, dict)
+    return plain
+
+
+def build_optimizer(cfg: Mapping[str, Any]) -> Any:
+    """Instantiate the configured optimiser, turning a bad hyperparameter into one line."""
+    try:
+        return hydra.utils.instantiate(cfg["optimizer"])
+    except InstantiationException as exc:
+        cause = exc.__cause__ or exc
+        raise ConfigError(f"optimizer: {cause}") from exc
 
 
 def _groups(roots: Sequence[Traversable]) -> list[str]:

@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from spatialseg import edpa, hypotheses, motion_init
-from spatialseg.checks import integer_setting, is_integer, optional_positive
+from spatialseg.checks import integer_setting, is_integer, number_setting, optional_positive
 from spatialseg.clustering import (
     ClusteringResult,
     ConvergenceRules,
@@ -255,13 +255,9 @@ def _image_flow_init(
 def _check_optimizer_name(name: str, key: str) -> None:
     """Raise a one-line error unless ``name`` is a ``conf/optimizer`` option (``key``: the
     config key that named it)."""
-    from spatialseg.config import group_options
+    from spatialseg.config import check_option
 
-    if name not in group_options("optimizer"):
-        raise ValueError(
-            f"{key}: unknown optimizer {name!r}; choose from "
-            f"{', '.join(group_options('optimizer'))}"
-        )
+    check_option("optimizer", name, key)
 
 
 def named_optimizer(name: str, key: str) -> Any:
@@ -377,7 +373,7 @@ def check_config(cfg: Mapping[str, Any]) -> None:
     only once the run reaches them, or never (an optimiser named for a stage that does not
     run): the starts, the optimisers named by key, the refit's budget, the P-step and
     relabelling smoothing and its grid (for windows with neighbours and alone), the context,
-    the depth-change cap, the relabelling prior and EDPA's edge radius."""
+    the depth-change cap, the relabelling prior, the stopping rules and EDPA's edge radius."""
     init_candidates(cfg["init"])
     init_candidates({**cfg["init"], "method": "auto"})  # init.auto, read only with auto
     _check_optimizer_name(str(cfg["init"]["tiles"]["refit"]), "init.tiles.refit")
@@ -393,6 +389,7 @@ def check_config(cfg: Mapping[str, Any]) -> None:
     relabel_sigmas(cfg["clustering"], alone=False)
     relabel_sigmas(cfg["clustering"], alone=True)
     relabel_prior_scale(cfg["clustering"])
+    _rules(cfg["clustering"])
     _repair_attempts(cfg["clustering"])
     _smoothness(cfg["clustering"])
     cluster_count(cfg)
@@ -822,13 +819,13 @@ def _p_step_option(ccfg: Mapping[str, Any], name: str, *, alone: bool) -> tuple[
 
 
 def _rules(ccfg: Mapping[str, Any]) -> ConvergenceRules:
-    """The loop's stopping rules from ``clustering``."""
+    """The loop's stopping rules from ``clustering``, checked (their ranges: ConvergenceRules)."""
     return ConvergenceRules(
-        max_iterations=int(ccfg["max_iterations"]),
-        tol=float(ccfg["tol"]),
-        patience=int(ccfg["patience"]),
-        target=None if ccfg["target"] is None else float(ccfg["target"]),
-        label_tol=None if ccfg["label_tol"] is None else float(ccfg["label_tol"]),
+        max_iterations=integer_setting(ccfg["max_iterations"], "clustering.max_iterations", 1),
+        tol=number_setting(ccfg["tol"], "clustering.tol", 0),
+        patience=integer_setting(ccfg["patience"], "clustering.patience", 1),
+        target=number_setting(ccfg["target"], "clustering.target", optional=True),
+        label_tol=number_setting(ccfg["label_tol"], "clustering.label_tol", 0, optional=True),
     )
 
 
@@ -929,10 +926,7 @@ def _fit_events(ccfg: Mapping[str, Any]) -> int | None:
 
 def _smoothness(ccfg: Mapping[str, Any]) -> float:
     """``clustering.smoothness``: a number >= 0 (0: off), or a one-line error."""
-    beta = ccfg["smoothness"]
-    if isinstance(beta, bool) or not isinstance(beta, int | float) or not beta >= 0:
-        raise ValueError(f"clustering.smoothness must be a number >= 0 (0: off), got {beta!r}")
-    return float(beta)
+    return number_setting(ccfg["smoothness"], "clustering.smoothness", 0, hint="0: off")
 
 
 def _repair_attempts(ccfg: Mapping[str, Any]) -> int:

@@ -18,7 +18,7 @@ import numpy as np
 from spatialseg.events import EventStream
 from spatialseg.recording import Camera, Recording, is_short_tail
 
-__all__ = ["load_scene", "packaged_data", "stream_scene"]
+__all__ = ["load_scene", "packaged_data", "read_scene", "stream_scene"]
 
 _CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 _DATA_DIR = Path(__file__).resolve().parent / "data"
@@ -77,16 +77,19 @@ def load_scene(
 
         return simulate_scene(scene, seed=seed, max_events=window_events, windows=windows)
     if kind == "recording":
-        from spatialseg.io import read_any
-
-        fov = scene.get("fov_deg")
-        recording = read_any(
-            _scene_path(scene),
-            camera=_scene_camera(scene),
-            fov_deg=None if fov is None else float(fov),
-        )
-        return recording
+        return read_scene(scene)
     raise ValueError(f"scene kind {kind!r} is not 'simulated' or 'recording'; fix the scene YAML")
+
+
+def read_scene(scene: Mapping[str, Any]) -> Recording:
+    """A ``kind: recording`` scene's file or directory (``path``, else ``packaged``), as
+    stored; a file without intrinsics takes ``camera`` or a nominal pinhole of ``fov_deg``."""
+    from spatialseg.io import read_any
+
+    fov = scene.get("fov_deg")
+    return read_any(
+        _scene_path(scene), camera=_scene_camera(scene), fov_deg=None if fov is None else float(fov)
+    )
 
 
 def stream_scene(scene: Mapping[str, Any], *, window_events: int) -> Iterator[Recording]:

@@ -16,6 +16,7 @@ import spatialseg.io._directory as io_directory
 from spatialseg.events import EventStream
 from spatialseg.io import read_recording, write_events, write_recording
 from spatialseg.recording import Camera, DepthMap, GroundTruth, Keyframe, Recording
+from tests.helpers import assert_same_recording
 
 W, H = 6, 4
 
@@ -53,35 +54,13 @@ def _recording(*, truth: bool = True, keyframes: bool = True, depth: bool = True
     )
 
 
-def _assert_same(a: Recording, b: Recording) -> None:
-    """Everything a recording holds is equal (depth NaN-aware, floats bit-exact)."""
-    for name in ("t", "x", "y", "p"):
-        np.testing.assert_array_equal(getattr(a.events, name), getattr(b.events, name))
-    assert a.camera == b.camera
-    assert [d.t for d in a.depth_maps] == [d.t for d in b.depth_maps]
-    for da, db in zip(a.depth_maps, b.depth_maps, strict=True):
-        np.testing.assert_array_equal(da.depth, db.depth)
-        assert db.depth.dtype == np.float32
-    assert [k.t for k in a.keyframes] == [k.t for k in b.keyframes]
-    for ka, kb in zip(a.keyframes, b.keyframes, strict=True):
-        np.testing.assert_array_equal(ka.image, kb.image)
-        assert kb.image.dtype == np.uint8
-    assert (a.ground_truth is None) == (b.ground_truth is None)
-    if a.ground_truth is not None and b.ground_truth is not None:
-        np.testing.assert_array_equal(a.ground_truth.labels, b.ground_truth.labels)
-        assert a.ground_truth.motions.keys() == b.ground_truth.motions.keys()
-        for k, v in a.ground_truth.motions.items():
-            np.testing.assert_array_equal(v, b.ground_truth.motions[k])
-        assert dict(a.ground_truth.names) == dict(b.ground_truth.names)
-
-
 @pytest.mark.parametrize("events_format", ["txt", "h5", "npz"])
 def test_round_trip(tmp_path: Path, events_format: str) -> None:
     rec = _recording()
     path = tmp_path / "scene"
     write_recording(rec, path, events_format=events_format)
     back = read_recording(path)
-    _assert_same(rec, back)
+    assert_same_recording(rec, back)
     assert back.name == "scene"
     assert (path / f"events.{events_format}").is_file()
     assert [p.name for p in tmp_path.iterdir()] == ["scene"]  # no temporary left behind
@@ -91,7 +70,7 @@ def test_round_trip_minimal(tmp_path: Path) -> None:
     rec = _recording(truth=False, keyframes=False, depth=False)
     write_recording(rec, tmp_path / "r")
     back = read_recording(tmp_path / "r")
-    _assert_same(rec, back)
+    assert_same_recording(rec, back)
     assert back.ground_truth is None
     assert sorted(p.name for p in (tmp_path / "r").iterdir()) == [
         "calib.txt",
@@ -150,7 +129,7 @@ def test_crash_mid_write_leaves_nothing_half_written(
 
 KILLED_WRITER = """
 import os, signal, sys
-sys.path.insert(0, sys.argv[2])
+sys.path[:0] = [sys.argv[2], os.path.dirname(sys.argv[2])]  # the tests and their package
 import spatialseg.io._directory as io_directory
 from spatialseg.io import write_recording
 from test_io_recording import _recording
