@@ -6,7 +6,13 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["integer_setting", "is_integer", "number_setting", "optional_positive"]
+__all__ = [
+    "boolean_setting",
+    "integer_setting",
+    "is_integer",
+    "number_setting",
+    "optional_positive",
+]
 
 
 def is_integer(value: Any, minimum: int) -> bool:
@@ -14,6 +20,14 @@ def is_integer(value: Any, minimum: int) -> bool:
     (YAML's ``true`` is an ``int`` to Python, and never a count)."""
     integer = isinstance(value, int | np.integer) and not isinstance(value, bool)
     return integer and bool(value >= minimum)
+
+
+def boolean_setting(value: Any, key: str) -> bool:
+    """``value`` if it is true or false; else a one-line ValueError that names the setting
+    ``key`` (a string such as 'no' or 'off' would read as true)."""
+    if not isinstance(value, bool | np.bool_):
+        raise ValueError(f"{key} must be true or false, got {value!r}")
+    return bool(value)
 
 
 def optional_positive(value: Any, key: str) -> float | None:

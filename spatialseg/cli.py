@@ -37,6 +37,7 @@ from hydra.errors import MissingConfigException, SearchPathException
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from spatialseg.checks import boolean_setting
 from spatialseg.config import build_optimizer, conf_dir, validate_run
 
 __all__ = ["guarded", "launch", "main", "run"]
@@ -132,6 +133,13 @@ def _fresh_run_dir(out_dir: Path) -> None:
         log.info("removed %s of an earlier run from %s", _plural(len(stale), "output"), out_dir)
 
 
+def _check_output(output: Mapping[str, Any]) -> None:
+    """Refuse an ``output.*`` switch that is not true or false (``output.h5=no`` is the
+    string 'no', which would read as true)."""
+    for key, value in output.items():
+        boolean_setting(value, f"output.{key}")
+
+
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Validate the config, segment the scene, write the outputs; return result.json's content."""
     from spatialseg.pipeline import check_config, log_iteration, segment_loaded
@@ -144,6 +152,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     validate_run(cfg)
     plain = OmegaConf.to_container(cfg, resolve=True)
     check_config(plain)
+    _check_output(plain["output"])
     start = time.perf_counter()
     if cfg.scene.get("stream"):
         return run_stream(cfg, plain, out_dir)
@@ -167,7 +176,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         from spatialseg.plots import save_result_figures
 
         save_result_figures(out_dir, recording, seg)
-    write_outputs(out_dir, seg, summary)
+    write_outputs(out_dir, recording, seg, summary, plain)
     _report(summary, out_dir, record(cfg, summary, out_dir))
     return summary
 
@@ -185,6 +194,7 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
         write_json,
     )
     from spatialseg.scenes import stream_scene
+    from spatialseg.segmentation_h5 import SegmentationH5
     from spatialseg.tracking import record
 
     start = time.perf_counter()
@@ -194,10 +204,11 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
             f"depth=constant or depth=ground_plane, not depth={plain['depth']['name']}"
         )
     out_dir.mkdir(parents=True, exist_ok=True)
-    labels_path, probabilities_path, result_path = data_paths(out_dir)
+    labels_path, probabilities_path, h5_path, result_path = data_paths(out_dir)
     with (  # the temporary files go however the block ends
         ArrayStream(labels_path, np.int64) as labels,
         ProbabilityStream(probabilities_path) as probabilities,
+        SegmentationH5(h5_path) if cfg.output.h5 else contextlib.nullcontext() as h5,
     ):
         optimizer, windows, handover = build_optimizer(cfg), [], None
         stream = stream_scene(plain["scene"], window_events=int(cfg.window.events))
@@ -207,6 +218,8 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
             handover = seg.handover or handover
             labels.append(seg.labels)
             probabilities.append_segmentation(seg)
+            if h5 is not None:
+                h5.append_events(window.events)
             windows += [window_summary(res, None, None) for res in seg.windows]
             elapsed = time.perf_counter() - start
             log.info("window %d: %d events, %.1f s", w, len(window.events), elapsed)
@@ -217,6 +230,8 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
         summary["stream"] = True
         labels.finish()
         probabilities.finish_objects(handover.boundary.next_id if handover else 1)
+        if h5 is not None:
+            h5.finish(labels_path, probabilities_path, summary, plain)
     write_json(result_path, summary)
     _report(summary, out_dir, record(cfg, summary, out_dir))
     return summary

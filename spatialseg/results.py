@@ -1,4 +1,5 @@
-"""A run's outputs: ``labels.npy``, ``probabilities.npy``, ``result.json`` and the figures.
+"""A run's outputs: ``labels.npy``, ``probabilities.npy``, ``segmentation.h5``
+(:mod:`spatialseg.segmentation_h5`), ``result.json`` and the figures.
 
 Every file is written to a temporary name and renamed into place
 (:func:`spatialseg.io._atomic.atomic_file`), and ``result.json`` is written last, so a
@@ -26,6 +27,7 @@ from spatialseg.io._atomic import atomic_file
 from spatialseg.metrics import segmentation_metrics
 from spatialseg.pipeline import SegmentationResult, WindowResult, spatial_velocities
 from spatialseg.recording import Recording
+from spatialseg.segmentation_h5 import write_segmentation_h5
 
 __all__ = [
     "DATA_FILES",
@@ -44,7 +46,7 @@ __all__ = [
 ]
 
 #: The data files a run writes into its directory, ``result.json`` last.
-DATA_FILES = ("labels.npy", "probabilities.npy", "result.json")
+DATA_FILES = ("labels.npy", "probabilities.npy", "segmentation.h5", "result.json")
 
 #: The figures a run writes (:mod:`spatialseg.plots`): ``NAME.png``, and with several
 #: windows ``NAME_w<window>.png``.
@@ -211,19 +213,31 @@ def _atomic_save(path: Path, write: Callable[[IO[bytes]], object]) -> None:
         write(f)
 
 
-def data_paths(out_dir: Path) -> tuple[Path, Path, Path]:
-    """The paths of ``labels.npy``, ``probabilities.npy`` and ``result.json`` in ``out_dir``."""
-    labels, probs, result = (out_dir / name for name in DATA_FILES)
-    return labels, probs, result
+def data_paths(out_dir: Path) -> tuple[Path, Path, Path, Path]:
+    """The paths of ``labels.npy``, ``probabilities.npy``, ``segmentation.h5`` and
+    ``result.json`` in ``out_dir``."""
+    labels, probs, h5, result = (out_dir / name for name in DATA_FILES)
+    return labels, probs, h5, result
 
 
-def write_outputs(out_dir: Path, seg: SegmentationResult, summary: Mapping[str, Any]) -> list[Path]:
-    """Write labels, probabilities and result.json (last) into ``out_dir``."""
-    labels, probs, result = data_paths(out_dir)
+def write_outputs(
+    out_dir: Path,
+    recording: Recording,
+    seg: SegmentationResult,
+    summary: Mapping[str, Any],
+    settings: Mapping[str, Any],
+) -> list[Path]:
+    """Write labels, probabilities, with ``output.h5`` in ``settings`` segmentation.h5 (the
+    recording's events, the run's labels and objects), and result.json (last)."""
+    labels, probs, h5, result = data_paths(out_dir)
     _atomic_save(labels, lambda f: np.save(f, seg.labels.astype(np.int64)))
     _atomic_save(probs, lambda f: np.save(f, seg.probabilities.astype(np.float32)))
+    written = [labels, probs]
+    if settings["output"]["h5"]:
+        write_segmentation_h5(h5, recording.events, labels, probs, summary, settings)
+        written.append(h5)
     write_json(result, summary)
-    return [labels, probs, result]
+    return [*written, result]
 
 
 def write_json(path: Path, summary: Mapping[str, Any]) -> None:

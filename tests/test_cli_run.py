@@ -11,29 +11,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from spatialseg.results import is_output
-from tests.helpers import run_module
 from tests.test_cli import spatialseg
-
-
-@pytest.fixture(scope="module")
-def recording_dir(tmp_path_factory):
-    """A small interior recording written by the simulator's command line."""
-    root = tmp_path_factory.mktemp("rec")
-    out = root / "interior"
-    done = run_module(
-        "spatialseg.simulate",
-        "+scene=interior",
-        f"out={out}",
-        "window.events=3000",
-        f"hydra.run.dir={root / 'sim'}",
-        cwd=root,
-    )
-    assert done.returncode == 0, done.stderr
-    return out
-
 
 #: A log line of the final object table: id, events, first-last window, velocity.
 OBJECT_ROW = re.compile(r"\]\[spatialseg\]\[INFO\] -\s+(\d+)\s+(\d+)\s+(\d+)-(\d+)\s+\[")

@@ -47,6 +47,8 @@ def test_an_object_without_events_gets_the_plain_mean_of_its_velocities():
         ("result.json", True),
         ("labels.npy", True),
         ("probabilities.npy", True),
+        ("segmentation.h5", True),
+        (".segmentation.h5.0123456789ab.tmp", True),
         ("clusters.png", True),
         ("warped_volumes_w12.png", True),
         ("theta_w0.png", True),
