@@ -2,11 +2,14 @@
 
 The types here are what readers return, what the simulator produces and what the method
 consumes. Construction validates consistency (depth maps match the sensor, sorted times,
-one ground-truth label per event) and raises ``ValueError`` naming the problem.
+one ground-truth label per event) and raises ``ValueError`` naming the problem;
+:func:`check_event_times` and :func:`check_depth_maps` check units (seconds, metres) and
+that both clocks agree, before segmentation.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -17,15 +20,36 @@ from spatialseg.checks import is_integer
 from spatialseg.events import EventStream
 
 __all__ = [
+    "MAX_MEDIAN_DEPTH",
+    "MAX_SPAN",
+    "MILLIMETRES_FIX",
     "Camera",
     "DepthMap",
     "GroundTruth",
     "Keyframe",
     "Recording",
+    "check_depth_maps",
+    "check_depth_units",
+    "check_event_times",
+    "check_time_units",
     "check_window_context",
     "event_boundaries",
     "is_short_tail",
 ]
+
+log = logging.getLogger(__name__)
+
+#: Longest plausible span of times, in seconds (over a day): no event recording is that long,
+#: so a longer span is microseconds or nanoseconds read as seconds.
+MAX_SPAN = 1e5
+#: A span over this many "seconds" is over a day even in microseconds: nanoseconds.
+_NANOSECONDS_SPAN = 1e11
+#: Median known depth (m) above which a depth map is taken for millimetres: an event camera's
+#: scene is within tens of metres (a street's median is ~10 m), and a scene in millimetres
+#: has a median over 200 unless it is all nearer than 0.2 m.
+MAX_MEDIAN_DEPTH = 200.0
+#: The fix for depths stored in millimetres, shared by every check that suspects them.
+MILLIMETRES_FIX = "depths look like millimetres; divide by 1000 (spatialseg depths are metres)"
 
 
 @dataclass(frozen=True)
@@ -181,6 +205,82 @@ class Recording:
             frames = tuple(k for k in self.keyframes if maps[first].t <= k.t <= maps[end].t)
             span = replace(self.select(slice(lo, hi)), depth_maps=span_maps, keyframes=frames)
             yield index, span, index - lo
+
+
+def check_time_units(what: str, noun: str, t: np.ndarray) -> None:
+    """Raise a one-line error naming ``what`` when the times ``t`` of its ``noun`` span over
+    :data:`MAX_SPAN` s; the span, not the values, as Unix times in seconds (1.7e9) are fine."""
+    span = float(np.max(t) - np.min(t)) if len(t) else 0.0
+    if span <= MAX_SPAN:
+        return
+    if span > _NANOSECONDS_SPAN:  # over a day in microseconds too
+        unit, fix = "nanoseconds", "divide by 1e9"
+    else:  # a microsecond span of 0.1 s to a day is also 0.1 ms to 100 s in nanoseconds
+        unit, fix = "microseconds", "divide by 1e6, or by 1e9 if they are nanoseconds"
+    raise ValueError(
+        f"{what}: {noun} span {span:.2g} s; timestamps look like {unit}; {fix} "
+        "(spatialseg times are seconds)"
+    )
+
+
+def check_depth_units(depth_map: DepthMap) -> None:
+    """Raise a one-line error naming the map when its median known depth is over
+    :data:`MAX_MEDIAN_DEPTH` m: millimetres stored as floats would scale every velocity 1000x."""
+    d = depth_map.depth
+    known = d[np.isfinite(d) & (d > 0)]
+    median = float(np.median(known)) if known.size else 0.0
+    if median > MAX_MEDIAN_DEPTH:
+        raise ValueError(
+            f"{depth_map.source} (depth map at t={depth_map.t:.6f} s): median depth "
+            f"{median:.4g} m; {MILLIMETRES_FIX}"
+        )
+
+
+def _source(recording: Recording) -> str:
+    """The events' file, or the recording's name for events made in memory."""
+    source = recording.events.source
+    return recording.name if source == "<memory>" else source
+
+
+def check_event_times(recording: Recording) -> None:
+    """Raise a one-line error when the events' times are not seconds (:func:`check_time_units`),
+    before a depth source spends any work on them."""
+    check_time_units(_source(recording), "events", recording.events.t)
+
+
+def check_depth_maps(recording: Recording) -> None:
+    """Raise a one-line error when the depth maps' times are not seconds, their depths not
+    metres, or no event falls between the first and last map; warn when most events do not.
+
+    Decision: the two clocks differing (an offset, or units the span check cannot see) leave
+    every window empty; most events outside may be a depth sequence shorter than the events,
+    so it warns (those events are labelled -1) rather than refuses.
+    """
+    maps, t = recording.depth_maps, recording.events.t
+    check_time_units(recording.name, "depth maps", np.array([m.t for m in maps]))
+    for depth_map in maps:
+        check_depth_units(depth_map)
+    if len(maps) < 2 or not len(t):
+        return
+    first, last = maps[0].t, maps[-1].t
+    inside = int(np.searchsorted(t, last, side="right") - np.searchsorted(t, first, side="left"))
+    spans = (
+        f"{_source(recording)}: events span {t[0]:.3f}-{t[-1]:.3f} s but the depth maps "
+        f"{first:.3f}-{last:.3f} s"
+    )
+    if inside == 0:
+        raise ValueError(
+            f"{spans}: no event falls between them, the two clocks differ (an offset or a "
+            "unit); give both in the same seconds"
+        )
+    if inside < len(t) / 2:
+        log.warning(
+            "%s: %d of %d events fall outside them and are labelled -1; if the two clocks "
+            "differ, give both in the same seconds",
+            spans,
+            len(t) - inside,
+            len(t),
+        )
 
 
 def check_window_context(context: Any) -> None:

@@ -31,7 +31,14 @@ from spatialseg.io._text import (
     read_timed_paths,
     write_lines,
 )
-from spatialseg.recording import Camera, DepthMap, GroundTruth, Keyframe, Recording
+from spatialseg.recording import (
+    MILLIMETRES_FIX,
+    Camera,
+    DepthMap,
+    GroundTruth,
+    Keyframe,
+    Recording,
+)
 
 __all__ = ["EVENT_FILES", "read_recording", "write_recording"]
 
@@ -78,10 +85,8 @@ def depth_array(file: Path, mmap: bool = False) -> np.ndarray:
     if depth.ndim != 2:
         raise ValueError(f"{file}: expected a 2-D (H, W) depth map, got shape {depth.shape}")
     if depth.dtype.kind != "f":
-        raise ValueError(
-            f"{file}: dtype {depth.dtype}, expected float32 metres; "
-            "convert it (e.g. millimetres / 1000.0)"
-        )
+        fix = MILLIMETRES_FIX if depth.dtype.kind in "iu" else "save float32 metres"
+        raise ValueError(f"{file}: dtype {depth.dtype}, expected float32 metres; {fix}")
     return depth
 
 
