@@ -1,4 +1,5 @@
-"""Small input checks shared by the config readers, so every key is judged alike."""
+"""Small input checks shared by the config readers, so every key is judged alike; and the
+one plural wording the log lines share."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ __all__ = [
     "is_integer",
     "number_setting",
     "optional_positive",
+    "plural",
 ]
 
 
@@ -74,3 +76,8 @@ def number_setting(
         note = f" ({hint})" if hint else ""
         raise ValueError(f"{key} must be {expected}{note}, got {value!r}")
     return float(value)
+
+
+def plural(n: int, word: str) -> str:
+    """``1 window``, ``3 windows``: a count with its noun, for log lines."""
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"

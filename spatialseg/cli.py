@@ -37,7 +37,7 @@ from hydra.errors import MissingConfigException, SearchPathException
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from spatialseg.checks import boolean_setting
+from spatialseg.checks import boolean_setting, plural
 from spatialseg.config import build_optimizer, conf_dir, validate_run
 
 __all__ = ["guarded", "launch", "main", "run"]
@@ -46,11 +46,6 @@ log = logging.getLogger("spatialseg")
 
 #: Exceptions that signal a user mistake (bad input or config), reported in one line.
 USER_ERRORS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, PermissionError)
-
-
-def _plural(n: int, word: str) -> str:
-    """``1 window``, ``3 windows``."""
-    return f"{n} {word}" if n == 1 else f"{n} {word}s"
 
 
 def _windows(ids: Sequence[int], shown: int = 4) -> str:
@@ -69,7 +64,7 @@ def _convergence(windows: Sequence[Mapping[str, Any]]) -> str:
         if not w["converged"]:
             stopped.setdefault(w["stop_reason"], []).append(i)
     done = len(windows) - sum(map(len, stopped.values()))
-    text = f"{done} of {_plural(len(windows), 'window')} converged"
+    text = f"{done} of {plural(len(windows), 'window')} converged"
     if not stopped:
         return text
     return f"{text} ({'; '.join(f'{_windows(ids)}: {why}' for why, ids in stopped.items())})"
@@ -84,9 +79,9 @@ def _report(summary: Mapping[str, Any], out_dir: Path, tracked: str | None) -> N
         "%s: %d events in %s, %d labelled as %s; %d iterations, %s",
         summary["scene"],
         summary["n_events"],
-        _plural(len(windows), "window"),
+        plural(len(windows), "window"),
         summary["n_labelled"],
-        _plural(len(seen), "object"),
+        plural(len(seen), "object"),
         summary["iterations"],
         _convergence(windows),
     )
@@ -130,7 +125,7 @@ def _fresh_run_dir(out_dir: Path) -> None:
     _restart_log(out_dir)
     stale = clear_outputs(out_dir)
     if stale:
-        log.info("removed %s of an earlier run from %s", _plural(len(stale), "output"), out_dir)
+        log.info("removed %s of an earlier run from %s", plural(len(stale), "output"), out_dir)
 
 
 def _check_output(output: Mapping[str, Any]) -> None:
@@ -142,7 +137,7 @@ def _check_output(output: Mapping[str, Any]) -> None:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Validate the config, segment the scene, write the outputs; return result.json's content."""
-    from spatialseg.pipeline import check_config, log_iteration, segment_loaded
+    from spatialseg.pipeline import check_config, segment_loaded
     from spatialseg.results import summarise, write_outputs
     from spatialseg.scenes import load_scene
     from spatialseg.tracking import record
@@ -164,17 +159,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     )
     timings = {"load": time.perf_counter() - start}
     optimizer = build_optimizer(cfg)
-    progress = log_iteration if cfg.output.progress else None
     begin = time.perf_counter()
     recording, seg = segment_loaded(
-        recording, plain, optimizer, seed=int(cfg.seed), on_iteration=progress
+        recording, plain, optimizer, seed=int(cfg.seed), progress=bool(cfg.output.progress)
     )
     timings["segment"] = time.perf_counter() - begin
     timings["total"] = time.perf_counter() - start
     summary = summarise(recording, seg, plain, timings)
     if cfg.output.plots:
-        from spatialseg.plots import save_result_figures
+        from spatialseg.plots import figure_count, save_result_figures
 
+        log.info("drawing %s ...", plural(figure_count(len(seg.windows)), "figure"))
         save_result_figures(out_dir, recording, seg)
     write_outputs(out_dir, recording, seg, summary, plain)
     _report(summary, out_dir, record(cfg, summary, out_dir))
@@ -214,15 +209,21 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
         stream = stream_scene(plain["scene"], window_events=int(cfg.window.events))
         for w, window in enumerate(stream):
             seed = int(np.random.default_rng([int(cfg.seed), w]).integers(2**31 - 1))
-            _, seg = segment_loaded(window, plain, optimizer, seed=seed, handover=handover)
+            _, seg = segment_loaded(
+                window,
+                plain,
+                optimizer,
+                seed=seed,
+                handover=handover,
+                progress=bool(cfg.output.progress),
+                first_window=len(windows),
+            )
             handover = seg.handover or handover
             labels.append(seg.labels)
             probabilities.append_segmentation(seg)
             if h5 is not None:
                 h5.append_events(window.events)
             windows += [window_summary(res, None, None) for res in seg.windows]
-            elapsed = time.perf_counter() - start
-            log.info("window %d: %d events, %.1f s", w, len(window.events), elapsed)
         if not windows:
             raise ValueError(f"{cfg.scene.path or cfg.scene.name}: the file has no events")
         timings = {"total": time.perf_counter() - start}

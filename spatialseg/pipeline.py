@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -23,6 +23,7 @@ from spatialseg.checks import (
     is_integer,
     number_setting,
     optional_positive,
+    plural,
 )
 from spatialseg.clustering import (
     ClusteringResult,
@@ -40,6 +41,7 @@ from spatialseg.clustering import (
     update_memberships,
 )
 from spatialseg.coherence import neighbour_graph, smooth_memberships
+from spatialseg.compilation import announce_compilation
 from spatialseg.denoise import denoise_mask
 from spatialseg.grid import VoxelGrid, grid_around, project_jacobian
 from spatialseg.identities import Boundary, boundary, link_clusters
@@ -1088,11 +1090,13 @@ def segment_window(
     seed: int,
     on_iteration: Any = None,
     previous: np.ndarray | None = None,
+    progress: str | None = None,
 ) -> WindowResult:
     """Segment one window (two depth maps) into ``cfg['n_clusters']`` motions; with
     ``init.method=auto``, from each start of ``init.auto``, keeping the highest total
     contrast. ``previous`` (K x the model's components): the preceding window's final
-    velocities, the ``previous`` start (skipped when None)."""
+    velocities, the ``previous`` start (skipped when None). ``progress``: the window's name
+    in a DEBUG line per iteration and per start (None: no such lines)."""
     wanted = cluster_count(cfg)
     k = wanted or (1 if previous is None else len(previous))
     starts = [s for s in init_candidates(cfg["init"]) if s != PREVIOUS or previous is not None]
@@ -1147,15 +1151,15 @@ def segment_window(
             optimizer,
             bounds,
             seed=seed,
-            on_iteration=on_iteration,
+            on_iteration=_iteration_logger(progress, method, on_iteration),
             alone=alone,
             xy=xy,
             seed_motion=seed_motion,
             auto=wanted is None,
         )
         timings["cluster"] += time.perf_counter() - start
-        if len(starts) > 1:
-            log.info("start %s: total contrast %.6g", method, float(np.sum(result.values)))
+        if progress is not None and len(starts) > 1:
+            log.debug("%s, start %s: total contrast %.6g", progress, method, result.total)
         if kept is None or _better(result, kept[0], auto=wanted is None):
             kept = (result, init, method)
     assert kept is not None and objectives is not None  # init_candidates names a start
@@ -1206,8 +1210,14 @@ def segment_recording(
     seed: int,
     on_iteration: Any = None,
     handover: Handover | None = None,
+    progress: bool = True,
+    first_window: int | None = None,
 ) -> SegmentationResult:
     """Segment every window (each pair of consecutive depth maps); labels cover all events.
+
+    ``progress`` (``output.progress``): an INFO line as each window ends and a DEBUG line
+    per iteration (:func:`_window_name` names the window; ``first_window``: in a stream,
+    the index of this chunk's first window, as the stream's count is unknown).
 
     With ``window.context`` = c > 0 each window is clustered together with up to c
     neighbouring windows on each side (EDPA between each event's own pair of maps) and
@@ -1232,8 +1242,9 @@ def segment_recording(
     xy = np.column_stack([recording.events.x, recording.events.y])
     spans = recording.spans(cfg["window"]["context"])
     for w, (index, span, inner) in enumerate(spans):
-        extra = f" ({len(span.events)} with its context)" if len(span.events) > len(index) else ""
-        log.info("window %d: %d events%s", w, len(index), extra)
+        count = len(recording.depth_maps) - 1 if first_window is None else None  # stream: unknown
+        name = _window_name((first_window or 0) + w, count)
+        start = time.perf_counter()
         res = segment_window(
             span,
             cfg,
@@ -1241,7 +1252,10 @@ def segment_recording(
             seed=int(seeds[w]),
             on_iteration=on_iteration,
             previous=previous,
+            progress=name if progress else None,
         )
+        if progress:
+            _log_window(name, len(index), len(span.events), res, time.perf_counter() - start)
         previous = res.clustering.thetas
         own = res.labels[inner]
         ids, next_id = link_clusters(edge, xy[index], own, res.clustering.thetas.shape[0])
@@ -1265,31 +1279,79 @@ def segment_loaded(
     seed: int,
     on_iteration: Any = None,
     handover: Handover | None = None,
+    progress: bool = True,
+    first_window: int | None = None,
 ) -> tuple[Recording, SegmentationResult]:
     """A loaded recording through the ``depth`` source and :func:`segment_recording`
-    (``handover``: a stream's previous chunk); the result covers every input event. Also
+    (``handover``: a stream's previous chunk; ``progress``, ``first_window``: its progress
+    lines); the result covers every input event. Also
     returns the recording the result describes: the input with the depth maps used.
 
     Every run (command line, :func:`spatialseg.segment`, experiments) comes through here,
     so the units are checked here, before any work: times in seconds, depths in metres,
-    events and depth maps on one clock (:func:`spatialseg.recording.check_depth_maps`)."""
+    events and depth maps on one clock (:func:`spatialseg.recording.check_depth_maps`).
+    A process's first segmentation announces the kernels' compilation on a fresh install
+    (:func:`spatialseg.compilation.announce_compilation`)."""
     from spatialseg.depth import with_configured_depth
 
     check_event_times(recording)  # before a depth source spends work on the events
     recording = with_configured_depth(recording, cfg)
     check_depth_maps(recording)
-    seg = segment_recording(
-        recording, cfg, optimizer, seed=seed, on_iteration=on_iteration, handover=handover
-    )
+    with announce_compilation():
+        seg = segment_recording(
+            recording,
+            cfg,
+            optimizer,
+            seed=seed,
+            on_iteration=on_iteration,
+            handover=handover,
+            progress=progress,
+            first_window=first_window,
+        )
     return recording, seg
 
 
-def log_iteration(record: IterationRecord) -> None:
-    """Progress line per outer iteration."""
+def _window_name(index: int, count: int | None) -> str:
+    """``window 2/3`` (its index as in result.json, of the recording's count), or
+    ``window 2`` in a stream, whose count is unknown."""
+    return f"window {index}" if count is None else f"window {index}/{count}"
+
+
+def _iteration_logger(
+    window: str | None, start: str, on_iteration: Any
+) -> Callable[[IterationRecord], None] | None:
+    """The per-iteration hook: a DEBUG line naming the window and the start (none when
+    ``window`` is None), then ``on_iteration`` (the caller's own, if any)."""
+    if window is None:
+        return on_iteration
+
+    def hook(record: IterationRecord) -> None:
+        """Log one outer iteration, then pass it on."""
+        log.debug(
+            "%s, start %s, iteration %d: total contrast %.6g, evaluations %d, %.2f s",
+            window,
+            start,
+            record.iteration,
+            record.total,
+            record.n_evals,
+            record.seconds,
+        )
+        if on_iteration is not None:
+            on_iteration(record)
+
+    return hook
+
+
+def _log_window(name: str, events: int, span: int, result: WindowResult, seconds: float) -> None:
+    """The INFO line as a window ends: its events (``span``: with its context windows'),
+    clusters, iterations and time."""
+    extra = f" ({span} with its context)" if span > events else ""
     log.info(
-        "iteration %d: total contrast %.6g, evaluations %d, %.2f s",
-        record.iteration,
-        record.total,
-        record.n_evals,
-        record.seconds,
+        "%s: %d events%s, %s, %d iterations, %.1f s",
+        name,
+        events,
+        extra,
+        plural(result.clustering.thetas.shape[0], "cluster"),
+        result.clustering.iterations,
+        seconds,
     )

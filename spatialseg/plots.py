@@ -26,6 +26,7 @@ if TYPE_CHECKING:
 __all__ = [
     "cluster_image",
     "event_image",
+    "figure_count",
     "label_shares",
     "object_colours",
     "object_legend",
@@ -146,6 +147,16 @@ def _save(fig: Figure, path: Path) -> Path:
     with atomic_file(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")
     return path
+
+
+#: The figures of each window (:func:`_window_figures`): warped volumes, contrast, theta.
+WINDOW_FIGURES = 3
+
+
+def figure_count(windows: int) -> int:
+    """How many figures :func:`save_result_figures` draws for ``windows`` windows."""
+    per_window = WINDOW_FIGURES + (1 if windows > 1 else 0)  # and its own events by object
+    return 1 + windows * per_window
 
 
 def save_result_figures(out_dir: Path, recording: Recording, seg: SegmentationResult) -> list[Path]:

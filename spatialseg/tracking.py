@@ -230,6 +230,7 @@ def record(cfg: DictConfig, summary: Mapping[str, Any], out_dir: Path) -> str | 
     settings = _settings(cfg)
     if settings is None:
         return None
+    log.info("logging to MLflow ...")  # the store's logging takes seconds at a run's end
     try:
         client, run_id = _start_run(cfg, settings)
         try:

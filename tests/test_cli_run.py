@@ -194,6 +194,7 @@ def test_streamed_run_segments_window_by_window(recording_dir, tmp_path):
         "depth=constant",
         "window.events=1000",
         "tracking=none",
+        "hydra.verbose=spatialseg.pipeline",  # the per-start lines are DEBUG
         f"hydra.run.dir={out}",
         cwd=tmp_path,
     )
@@ -208,7 +209,11 @@ def test_streamed_run_segments_window_by_window(recording_dir, tmp_path):
         expected = [*expected[:-2], 1000 + tail]
     assert sizes == expected
     # each window after the first also starts from the velocities the one before ended with
-    assert (out / "cli.log").read_text().count("start previous:") == len(sizes) - 1
+    log_text = (out / "cli.log").read_text()
+    assert log_text.count(", start previous: total contrast") == len(sizes) - 1
+    # one INFO line per streamed window, named by its index (a stream's count is unknown)
+    for w, size in enumerate(sizes):
+        assert f"[INFO] - window {w}: {size} events, " in log_text
     labels, probabilities = np.load(out / "labels.npy"), np.load(out / "probabilities.npy")
     assert labels.shape == (n,) and probabilities.shape == (n, max(labels.max() + 1, 2))
     known = labels >= 0  # one column per object id, linked across the streamed windows
@@ -257,8 +262,8 @@ def test_killed_streamed_run_leaves_no_temporary_files(recording_dir, tmp_path):
         command, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     ) as proc:
         assert proc.stdout is not None
-        for line in proc.stdout:  # the first window's rows are in the temporary files
-            if "[spatialseg][INFO] - window 0: 1000 events" in line:
+        for line in proc.stdout:  # window 1 ended: window 0's rows are in the temporary files
+            if "][INFO] - window 1: 1000 events" in line:
                 break
         assert (out / ".labels.npy.raw").is_file()
         proc.send_signal(signal.SIGTERM)

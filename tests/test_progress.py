@@ -1,0 +1,140 @@
+"""Progress lines (issue 28, item 5): a DEBUG line per iteration naming its window and start,
+an INFO line per window as it ends, and the numba kernels' first compilation announced."""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+import optimizers
+from spatialseg.compilation import cache_is_cold, compile_seconds, index_paths
+from spatialseg.config import conf_dir
+from spatialseg.pipeline import segment_recording
+from spatialseg.plots import figure_count
+from spatialseg.scenes import load_scene
+
+EVENTS = 2000
+
+
+def _config(*overrides: str) -> dict:
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = compose(
+            "config", overrides=["+scene=interior", f"window.events={EVENTS}", *overrides]
+        )
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+@pytest.fixture(scope="module")
+def two_windows():
+    cfg = _config("clustering.max_iterations=2", "window.context=0")
+    return cfg, load_scene(cfg["scene"], seed=0, window_events=EVENTS, windows=2)
+
+
+def _messages(caplog, level: int) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelno == level]
+
+
+def test_iteration_lines_are_debug_and_name_the_window_and_start(two_windows, caplog):
+    cfg, rec = two_windows
+    caplog.set_level(logging.DEBUG, logger="spatialseg")
+    seg = segment_recording(rec, cfg, optimizers.create("ssa_ga"), seed=0)
+    debug, info = _messages(caplog, logging.DEBUG), _messages(caplog, logging.INFO)
+    assert not [m for m in info if "total contrast" in m]
+    iterations = [m for m in debug if ", iteration " in m]
+    assert all(m.startswith(("window 0/2, start ", "window 1/2, start ")) for m in iterations)
+    # the second window also starts from the first's velocities: both starts are named
+    assert any(
+        m.startswith("window 1/2, start previous, iteration 1: total contrast") for m in debug
+    )
+    assert any(m.startswith("window 1/2, start previous: total contrast") for m in debug)
+    ran = sum(res.clustering.iterations for res in seg.windows)
+    assert len(iterations) >= ran  # every start's iterations, the kept one's among them
+    ends = [m for m in info if m.startswith("window ")]
+    assert len(ends) == 2
+    for w, (line, res) in enumerate(zip(ends, seg.windows, strict=True)):
+        k, its = res.clustering.thetas.shape[0], res.clustering.iterations
+        assert line.startswith(f"window {w}/2: {EVENTS} events, {k} clusters, {its} iterations, ")
+
+
+def test_progress_off_logs_no_window_or_iteration_lines(two_windows, caplog):
+    cfg, rec = two_windows
+    caplog.set_level(logging.DEBUG, logger="spatialseg")
+    segment_recording(rec, cfg, optimizers.create("ssa_ga"), seed=0, progress=False)
+    text = [r.getMessage() for r in caplog.records]
+    assert not [m for m in text if m.startswith("window ") or "total contrast" in m]
+
+
+def test_a_stream_names_its_windows_from_first_window_without_a_count(two_windows, caplog):
+    cfg, rec = two_windows
+    caplog.set_level(logging.INFO, logger="spatialseg")
+    segment_recording(rec, cfg, optimizers.create("ssa_ga"), seed=0, first_window=5)
+    ends = [m for m in _messages(caplog, logging.INFO) if m.startswith("window ")]
+    assert [m.split(":")[0] for m in ends] == ["window 5", "window 6"]
+
+
+def test_figure_count_is_what_save_result_figures_draws(two_windows, tmp_path):
+    from spatialseg.plots import save_result_figures
+
+    cfg, rec = two_windows
+    seg = segment_recording(rec, cfg, optimizers.create("ssa_ga"), seed=0, progress=False)
+    assert len(save_result_figures(tmp_path, rec, seg)) == figure_count(2) == 9
+    assert figure_count(1) == 4
+
+
+def test_the_kernels_index_paths_and_a_warm_cache():
+    paths = index_paths()
+    assert len(paths) >= 5 and all(p.suffix == ".nbi" for p in paths)
+    assert not cache_is_cold()  # this process's install has compiled (the tests above)
+
+
+def test_compile_seconds_sums_the_outermost_spans():
+    from numba.core.event import Event, EventStatus
+
+    def ev(status):
+        return Event("numba:compile", status)
+
+    start, end = EventStatus.START, EventStatus.END
+    records = [(0.0, ev(start)), (1.0, ev(start)), (2.0, ev(end)), (3.0, ev(end))]
+    records += [(10.0, ev(start)), (10.5, ev(end))]
+    assert compile_seconds(records) == pytest.approx(3.5)
+
+
+SCRIPT = textwrap.dedent(
+    """
+    import logging, sys
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
+    from spatialseg.compilation import announce_compilation
+    from spatialseg.objectives import volume_moments
+    import numpy as np
+    with announce_compilation():
+        volume_moments(np.ones((2, 3, 4)))
+    """
+)
+
+
+def test_a_cold_cache_announces_the_compilation_once(tmp_path):
+    """With NUMBA_CACHE_DIR empty the first run announces and times the compile; a second
+    run on the same cache finds it warm and says nothing."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+
+    def run() -> str:
+        done = subprocess.run(
+            [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=300
+        )
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    first = run()
+    assert "compiling the numba kernels (once per install, about" in first
+    assert "compiled in " in first
+    assert any(Path(tmp_path).rglob("*.nbi"))
+    second = run()
+    assert "compil" not in second
