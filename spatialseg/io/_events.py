@@ -3,6 +3,8 @@
 HDF5: datasets ``events/x``, ``events/y``, ``events/t``, ``events/p``; a float ``t`` is in
 seconds, an integer ``t`` in microseconds (DSEC) plus the root dataset ``t_offset`` (µs)
 when present; the sensor size is stored as attributes ``width``/``height`` of ``events``.
+DSEC compresses its datasets with Blosc/zstd: importing ``hdf5plugin`` registers those
+filters with h5py, so such files read like any other.
 npz: arrays ``t`` (seconds), ``x``, ``y``, ``p`` and optionally 0-d ``width``, ``height``.
 """
 
@@ -13,6 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import h5py
+import hdf5plugin  # noqa: F401  (registers Blosc, zstd, LZ4 ... filters with h5py on import)
 import numpy as np
 
 from spatialseg.events import EventStream, normalise_polarity
