@@ -11,6 +11,7 @@ __all__ = [
     "boolean_setting",
     "integer_setting",
     "is_integer",
+    "is_number",
     "number_setting",
     "optional_positive",
     "plural",
@@ -22,6 +23,12 @@ def is_integer(value: Any, minimum: int) -> bool:
     (YAML's ``true`` is an ``int`` to Python, and never a count)."""
     integer = isinstance(value, int | np.integer) and not isinstance(value, bool)
     return integer and bool(value >= minimum)
+
+
+def is_number(value: Any) -> bool:
+    """True for a finite real number (not a bool, which Python counts as an int)."""
+    real = isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
+    return real and bool(np.isfinite(value))
 
 
 def boolean_setting(value: Any, key: str) -> bool:
@@ -37,10 +44,7 @@ def optional_positive(value: Any, key: str) -> float | None:
     names the setting ``key``."""
     if value is None:
         return None
-    number = isinstance(value, int | float | np.integer | np.floating) and not isinstance(
-        value, bool
-    )
-    if not number or not np.isfinite(value) or not value > 0:
+    if not is_number(value) or not value > 0:
         raise ValueError(f"{key} must be a positive number or null, got {value!r}")
     return float(value)
 
@@ -67,10 +71,7 @@ def number_setting(
     brackets)."""
     if optional and value is None:
         return None
-    number = isinstance(value, int | float | np.integer | np.floating) and not isinstance(
-        value, bool
-    )
-    if not number or not np.isfinite(value) or (minimum is not None and not value >= minimum):
+    if not is_number(value) or (minimum is not None and not value >= minimum):
         expected = "a number" + ("" if minimum is None else f" >= {minimum:g}")
         expected += " or null" if optional else ""
         note = f" ({hint})" if hint else ""

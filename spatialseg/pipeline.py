@@ -228,12 +228,14 @@ class ModelEvaluator:
         return self.inner.p_step(self._full(theta), sigma, stride)
 
 
-def _planar_points(window: Recording, xy_scale: float, support: np.ndarray | None = None):
+def _planar_points(
+    window: Recording, xy_scale: float, support: np.ndarray | None = None
+) -> Prepared:
     """Image-plane embedding (Stoffregen et al. 2019): points (x, y, 0) in pixels, no depth;
     the ``support``ed events (default all) are fitted, the others kept aside."""
     ev = window.events
     every = np.column_stack([ev.x, ev.y, np.zeros(len(ev))]).astype(np.float64)
-    fit = np.ones(len(ev), dtype=bool) if support is None or not support.any() else support
+    fit = np.ones(len(ev), dtype=bool) if support is None else support  # fit_support: never empty
     points = every[fit]
     lo = points.min(axis=0) - np.array([2 * xy_scale, 2 * xy_scale, 0.0])
     hi = points.max(axis=0) + np.array([2 * xy_scale, 2 * xy_scale, 0.0])
@@ -1108,7 +1110,8 @@ def segment_window(
     prepared = prepare(window, cfg, seed=seed)
     check_events_per_cluster(prepared.points.shape[0], k, window.name)
     t_ref = reference_time(prepared.t, cfg["volume"]["t_ref"])
-    xy = np.column_stack([window.events.x, window.events.y])[prepared.valid].astype(np.float64)
+    pixels = np.column_stack([window.events.x, window.events.y]).astype(np.float64)
+    xy = pixels[prepared.valid]
     timings["prepare"] = time.perf_counter() - start
     ccfg = cfg["clustering"]
     bounds = search_bounds(prepared, float(ccfg["max_displacement"]), depth_change_cap(ccfg))
@@ -1187,9 +1190,8 @@ def segment_window(
     beta = _smoothness(ccfg)
     if beta > 0:
         labelled = prepared.labelled
-        every = np.column_stack([window.events.x, window.events.y])[labelled]
         probabilities[labelled] = smooth_memberships(
-            probabilities[labelled], neighbour_graph(every.astype(np.float64)), beta
+            probabilities[labelled], neighbour_graph(pixels[labelled]), beta
         )
     timings["label"] = time.perf_counter() - start
     labels = assign_labels(
@@ -1241,8 +1243,8 @@ def segment_recording(
     next_id = 0 if edge is None else edge.next_id
     xy = np.column_stack([recording.events.x, recording.events.y])
     spans = recording.spans(cfg["window"]["context"])
+    count = len(recording.depth_maps) - 1 if first_window is None else None  # stream: unknown
     for w, (index, span, inner) in enumerate(spans):
-        count = len(recording.depth_maps) - 1 if first_window is None else None  # stream: unknown
         name = _window_name((first_window or 0) + w, count)
         start = time.perf_counter()
         res = segment_window(
