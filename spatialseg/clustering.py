@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -36,7 +36,6 @@ __all__ = [
     "iterative_clustering",
     "maximize_contrast",
     "p_step",
-    "repair_clusters",
     "update_memberships",
     "weak_cluster",
     "worst_explained",
@@ -121,7 +120,6 @@ class ClusteringResult:
     history: list[IterationRecord] = field(default_factory=list)
     converged: bool = False
     reason: str = ""
-    repairs: int = 0  # clusters re-seeded by repair_clusters
 
     @property
     def iterations(self) -> int:
@@ -361,7 +359,7 @@ def iterative_clustering(
 
 @dataclass(frozen=True)
 class Repair:
-    """What :func:`repair_clusters` needs of a window beyond the loop.
+    """What :func:`grow_clusters` needs of a window beyond the loop.
 
     ``run(thetas, p, seed)``: the loop from velocities and memberships; ``responses(thetas,
     p)``: each event's P-step response to each cluster (N x K); ``fit(events, seed)``: the
@@ -444,50 +442,6 @@ def _reseeded(
     return seeded
 
 
-def repair_clusters(
-    result: ClusteringResult, repair: Repair, *, seed: int, attempts: int
-) -> ClusteringResult:
-    """Split-and-merge repair of a converged loop: while a cluster wastes its slot
-    (:func:`weak_cluster`: empty, or a duplicate of another motion), re-seed it with the
-    motion of the worst-explained coherent group of events (:func:`worst_explained`) and run
-    the loop again; keep the result when the joint objective rises and the slot holds
-    events, else stop. At most ``attempts`` re-seeds.
-
-    Decision: a cluster that loses its events to another never wins them back in the loop
-    (its volume is empty, so it responds to nothing); where the other motion blurs a group
-    of events, those events are what the lost cluster should explain (split-and-merge EM,
-    Ueda et al. 2000). The joint objective judges each repair, so a repair that does not
-    pay is undone.
-    """
-    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=(max(attempts, 1), 2))
-    for attempt in range(attempts):
-        slot = weak_cluster(result.thetas, result.probabilities, repair)
-        if slot is None:
-            break
-        group = worst_explained(
-            repair.responses(result.thetas, result.probabilities), result.probabilities, repair.xy
-        )
-        if group is None:
-            break
-        thetas = result.thetas.copy()
-        thetas[slot] = repair.fit(group, int(seeds[attempt, 0]))
-        p = _reseeded(result.probabilities, slot, group, thetas, repair)
-        candidate = repair.run(thetas, p, int(seeds[attempt, 1]))
-        still = weak_cluster(candidate.thetas, candidate.probabilities, repair)
-        log.info(
-            "repair: cluster %d re-seeded from %d events: total contrast %.6g -> %.6g%s",
-            slot,
-            len(group),
-            result.total,
-            candidate.total,
-            "" if still != slot else " (still weak)",
-        )
-        if candidate.total <= result.total or still == slot:
-            break
-        result = replace(candidate, repairs=result.repairs + 1)
-    return result
-
-
 #: A motion added by :func:`grow_clusters` must raise the joint objective by this share.
 MIN_GAIN = 0.05
 
@@ -512,10 +466,9 @@ def grow_clusters(
 ) -> ClusteringResult:
     """The number of motions from the data: while a cluster wastes its slot
     (:func:`weak_cluster`) drop it; then add a motion seeded from the worst-explained
-    coherent group of events (:func:`worst_explained`, as :func:`repair_clusters` does)
-    while one pays: the loop run with it must raise the sharpness
-    (:attr:`ClusteringResult.sharpness`) by at least ``min_gain`` of it and leave no
-    cluster wasted. At most ``max_clusters``.
+    coherent group of events (:func:`worst_explained`) while one pays: the loop run with it
+    must raise the sharpness (:attr:`ClusteringResult.sharpness`) by at least ``min_gain``
+    of it and leave no cluster wasted. At most ``max_clusters``.
 
     Decision: the sum of contrasts is quadratic in each cluster's mass, so it falls when one
     motion's events are split in two; the sharpness does not change then, and rises by the

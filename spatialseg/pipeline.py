@@ -37,10 +37,8 @@ from spatialseg.clustering import (
     iterative_clustering,
     maximize_contrast,
     p_step,
-    repair_clusters,
     update_memberships,
 )
-from spatialseg.coherence import neighbour_graph, smooth_memberships
 from spatialseg.compilation import announce_compilation
 from spatialseg.denoise import denoise_mask
 from spatialseg.grid import VoxelGrid, grid_around, project_jacobian
@@ -418,11 +416,8 @@ def check_config(cfg: Mapping[str, Any]) -> None:
     relabel_sigmas(cfg["clustering"], alone=True)
     relabel_prior_scale(cfg["clustering"])
     _rules(cfg["clustering"])
-    _repair_attempts(cfg["clustering"])
-    _smoothness(cfg["clustering"])
     cluster_count(cfg)
     _max_clusters(cfg["clustering"])
-    _fit_events(cfg["clustering"])
     edpa.check_edge_radius(cfg["edpa"]["edge_radius"])
 
 
@@ -503,14 +498,14 @@ def init_candidates(init_cfg: Mapping[str, Any]) -> list[str]:
     return names
 
 
-def prepare(window: Recording, cfg: Mapping[str, Any], *, seed: int = 0) -> Prepared:
+def prepare(window: Recording, cfg: Mapping[str, Any]) -> Prepared:
     """Lift the window's events into the model's space and build the voxel grid around the
-    events the motions are fitted on (:func:`fit_support`, its sample drawn with ``seed``);
+    events the motions are fitted on (:func:`fit_support`);
     the other events with depth are kept aside (``Prepared.rest``) and labelled at the end."""
     model, vol = cfg["model"], cfg["volume"]
     if len(window.events) == 0:
         raise ValueError(f"{window.name}: the window has no events; choose a longer window")
-    support = fit_support(window, cfg, seed=seed)
+    support = fit_support(window, cfg)
     if model["name"] == "planar":
         return _planar_points(window, float(model["xy_scale"]), support)
     lifted = edpa.lift(
@@ -539,29 +534,20 @@ def prepare(window: Recording, cfg: Mapping[str, Any], *, seed: int = 0) -> Prep
     return Prepared(points, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
 
 
-def fit_support(window: Recording, cfg: Mapping[str, Any], *, seed: int = 0) -> np.ndarray:
+def fit_support(window: Recording, cfg: Mapping[str, Any]) -> np.ndarray:
     """The window's events the motions are fitted on (N,): with ``denoise.enabled``, those
     the background-activity filter supports (:func:`spatialseg.denoise.denoise_mask`), else
-    all; at most ``clustering.fit_events`` of them (null: no limit), drawn with ``seed``.
-    The others are labelled at the end from the fitted motions.
+    all. The others are labelled at the end from the fitted motions.
 
-    Decisions: an isolated noise event carries no motion but, lifted to the depth behind
+    Decision: an isolated noise event carries no motion but, lifted to the depth behind
     it, stretches the grid and blurs every volume; 4.6 % of noise turned a three-object
     scene from 1.0 to 0.73. Dropping such events (the filter's usual use) loses the signal
-    events it rejects too; leaving them out of the fit alone keeps their labels. And a
-    motion is pinned down by far fewer events than a long window holds, so a window of a
-    million events costs the fit no more than one of 20,000 and is labelled in one pass."""
+    events it rejects too; leaving them out of the fit alone keeps their labels."""
     den = cfg["denoise"]
-    enabled = boolean_setting(den["enabled"], "denoise.enabled")
     support = np.ones(len(window.events), dtype=bool)
-    if enabled:  # a window the filter rejects whole (a few events) is fitted on them all
+    if boolean_setting(den["enabled"], "denoise.enabled"):
         support = denoise_mask(window.events, radius=den["radius"], window=den["window"])
-        support |= not support.any()
-    cap = _fit_events(cfg["clustering"])
-    if cap is not None and np.count_nonzero(support) > cap:
-        drawn = np.random.default_rng(seed).choice(np.flatnonzero(support), cap, replace=False)
-        support = np.zeros_like(support)
-        support[drawn] = True
+        support |= not support.any()  # a window rejected whole (a few events): fit them all
     return support
 
 
@@ -871,11 +857,11 @@ def _cluster_from(
     auto: bool = False,
 ) -> ClusteringResult:
     """Algorithm 1 from one start: its memberships, then the configured loop (``alone``: the
-    window has no neighbouring windows, :func:`p_step_settings`), then the split-and-merge
-    repair of wasted clusters (``clustering.repair`` re-seeds at most; ``xy``: the points'
-    image positions; ``seed_motion(points, seed)``: the motion of a group of points); with
-    ``auto`` (``n_clusters=auto``) the clusters grow and shrink instead
-    (:func:`spatialseg.clustering.grow_clusters`, up to ``clustering.max_clusters``)."""
+    window has no neighbouring windows, :func:`p_step_settings`); with ``auto``
+    (``n_clusters=auto``) the clusters then grow and shrink
+    (:func:`spatialseg.clustering.grow_clusters`, up to ``clustering.max_clusters``;
+    ``xy``: the points' image positions; ``seed_motion(points, seed)``: the motion of a
+    group of points)."""
     ccfg = cfg["clustering"]
     sigmas, stride = p_step_settings(ccfg, alone=alone)
     init_p = initial_memberships(
@@ -906,6 +892,8 @@ def _cluster_from(
         )
 
     result = run(init.thetas[:, : prepared.dim], init_p, seed)
+    if not auto:
+        return result
     repair = Repair(
         run=run,
         responses=lambda thetas, p: cluster_responses(evaluator, thetas, p, sigmas, stride)[0],
@@ -913,9 +901,7 @@ def _cluster_from(
         separation=lambda a, b: motion_separation(prepared, a, b),
         xy=xy,
     )
-    if auto:
-        return grow_clusters(result, repair, seed=seed + 1, max_clusters=_max_clusters(ccfg))
-    return repair_clusters(result, repair, seed=seed + 1, attempts=_repair_attempts(ccfg))
+    return grow_clusters(result, repair, seed=seed + 1, max_clusters=_max_clusters(ccfg))
 
 
 def _better(result: ClusteringResult, than: ClusteringResult, *, auto: bool) -> bool:
@@ -942,22 +928,6 @@ def cluster_count(cfg: Mapping[str, Any]) -> int | None:
 def _max_clusters(ccfg: Mapping[str, Any]) -> int:
     """``clustering.max_clusters`` (n_clusters=auto's limit), checked."""
     return integer_setting(ccfg["max_clusters"], "clustering.max_clusters", 1)
-
-
-def _fit_events(ccfg: Mapping[str, Any]) -> int | None:
-    """``clustering.fit_events``, checked (None: fit on every event)."""
-    value = ccfg["fit_events"]
-    return integer_setting(value, "clustering.fit_events", 1, optional=True, hint="null: all")
-
-
-def _smoothness(ccfg: Mapping[str, Any]) -> float:
-    """``clustering.smoothness``: a number >= 0 (0: off), or a one-line error."""
-    return number_setting(ccfg["smoothness"], "clustering.smoothness", 0, hint="0: off")
-
-
-def _repair_attempts(ccfg: Mapping[str, Any]) -> int:
-    """``clustering.repair``, checked (0: off)."""
-    return integer_setting(ccfg["repair"], "clustering.repair", 0, hint="0: off")
 
 
 def motion_separation(prepared: Prepared, a: np.ndarray, b: np.ndarray) -> float:
@@ -1107,11 +1077,10 @@ def segment_window(
     alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    prepared = prepare(window, cfg, seed=seed)
+    prepared = prepare(window, cfg)
     check_events_per_cluster(prepared.points.shape[0], k, window.name)
     t_ref = reference_time(prepared.t, cfg["volume"]["t_ref"])
-    pixels = np.column_stack([window.events.x, window.events.y]).astype(np.float64)
-    xy = pixels[prepared.valid]
+    xy = np.column_stack([window.events.x, window.events.y])[prepared.valid].astype(np.float64)
     timings["prepare"] = time.perf_counter() - start
     ccfg = cfg["clustering"]
     bounds = search_bounds(prepared, float(ccfg["max_displacement"]), depth_change_cap(ccfg))
@@ -1187,12 +1156,6 @@ def segment_window(
     if prepared.rest is not None and len(prepared.rest[0]):
         rest = label_rest(prepared, t_ref, cfg, result, p_step_settings(ccfg, alone=alone))
         probabilities[prepared.rest[2]] = rest
-    beta = _smoothness(ccfg)
-    if beta > 0:
-        labelled = prepared.labelled
-        probabilities[labelled] = smooth_memberships(
-            probabilities[labelled], neighbour_graph(pixels[labelled]), beta
-        )
     timings["label"] = time.perf_counter() - start
     labels = assign_labels(
         probabilities[prepared.labelled],

@@ -44,13 +44,13 @@ def test_optional_positive_is_a_float_or_none_and_names_the_key():
 
 
 def test_integer_setting_names_the_key_its_range_and_the_hint():
-    assert integer_setting(3, "clustering.repair", 0) == 3
-    assert integer_setting(None, "clustering.fit_events", 1, optional=True) is None
+    assert integer_setting(3, "window.context", 0) == 3
+    assert integer_setting(None, "clustering.step_events", 1, optional=True) is None
     for value in (2.5, None, True, -1):
         with pytest.raises(ValueError) as info:
-            integer_setting(value, "clustering.repair", 0, hint="0: off")
+            integer_setting(value, "window.context", 0, hint="0: off")
         assert str(info.value) == (
-            f"clustering.repair must be an integer >= 0 (0: off), got {value!r}"
+            f"window.context must be an integer >= 0 (0: off), got {value!r}"
         )
     with pytest.raises(ValueError, match=r"must be an integer >= 1 or null, got 0"):
-        integer_setting(0, "clustering.fit_events", 1, optional=True)
+        integer_setting(0, "clustering.step_events", 1, optional=True)
