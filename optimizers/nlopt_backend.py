@@ -153,6 +153,7 @@ class NLopt(Optimizer):
         """
         hp = self.hp
         raised: list[BaseException] = []
+        running: list[nlopt.opt] = []  # the opt that calls objective, for its force_stop
         lowest = np.inf
         gave_infinity = False
 
@@ -167,7 +168,7 @@ class NLopt(Optimizer):
                 problem.end_iteration()
             except BaseException as exc:
                 raised.append(exc)
-                opt.force_stop()
+                running[0].force_stop()
                 return lowest
             if np.isfinite(value):
                 lowest = min(lowest, value)
@@ -176,35 +177,48 @@ class NLopt(Optimizer):
             return lowest
 
         opt = self._build(problem, objective)
-        start = problem.uniform(1)[0] if x0 is None else x0
-        while True:
-            nlopt.srand(int(problem.rng.integers(2**31)))
-            opt.set_maxeval(problem.remaining)
-            try:
-                opt.optimize(start)
-            except Exception as exc:
-                if raised:
-                    raise raised[0] from None
-                if isinstance(exc, _ROUNDOFF):
-                    reason = "stopped by NLopt: roundoff limited"
-                elif gave_infinity:
-                    reason = "stopped by NLopt: it failed after fun returned only non-finite values"
-                elif isinstance(exc, _FAILURE) and np.isfinite(lowest):
-                    reason = (
-                        "stopped by NLopt: generic failure (a gradient method's line search "
-                        "gave up, e.g. on a non-smooth objective); the best point so far is kept"
-                    )
+        running.append(opt)
+        try:
+            start = problem.uniform(1)[0] if x0 is None else x0
+            while True:
+                nlopt.srand(int(problem.rng.integers(2**31)))
+                opt.set_maxeval(problem.remaining)
+                try:
+                    opt.optimize(start)
+                except Exception as exc:
+                    if raised:
+                        raise raised[0] from None
+                    if isinstance(exc, _ROUNDOFF):
+                        reason = "stopped by NLopt: roundoff limited"
+                    elif gave_infinity:
+                        reason = (
+                            "stopped by NLopt: it failed after fun returned only non-finite values"
+                        )
+                    elif isinstance(exc, _FAILURE) and np.isfinite(lowest):
+                        reason = (
+                            "stopped by NLopt: generic failure (a gradient method's line "
+                            "search gave up, e.g. on a non-smooth objective); the best point "
+                            "so far is kept"
+                        )
+                    else:
+                        raise _translate(exc, hp.algorithm) from exc
                 else:
-                    raise _translate(exc, hp.algorithm) from exc
-            else:
-                if raised:
-                    raise raised[0]
-                reason = (
-                    f"stopped by NLopt: {_STOP_REASONS.get(opt.last_optimize_result(), 'done')}"
-                )
-            if not (hp.restart and _is_local(hp.algorithm)):
-                return reason
-            start = problem.uniform(1)[0]
+                    if raised:
+                        raise raised[0]
+                    reason = (
+                        f"stopped by NLopt: {_STOP_REASONS.get(opt.last_optimize_result(), 'done')}"
+                    )
+                if not (hp.restart and _is_local(hp.algorithm)):
+                    return reason
+                start = problem.uniform(1)[0]
+        finally:
+            # NLopt holds ``objective``, whose closure reaches ``opt`` (``running``) and the
+            # traceback of the exception that stopped it (``raised``): cycles through a C
+            # object the garbage collector cannot see, which kept every problem (and the
+            # arrays its function holds, a whole voxel grid each) alive. Emptying both
+            # breaks them.
+            raised.clear()
+            running.clear()
 
 
 def _translate(exc: BaseException, algorithm: str) -> Exception:

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import gc
 import json
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 
@@ -195,6 +197,19 @@ def test_budget_is_never_exceeded(name, budget, with_grad):
     assert res.n_evals == rec.n_evals <= budget
     assert rec.n_evals >= 1
     assert with_grad or not rec.grad_points
+
+
+@pytest.mark.parametrize("budget", [7, 400], ids=["budget_used", "stopped_early"])
+@pytest.mark.parametrize("name", CONFIGS)
+def test_the_objective_is_released_when_maximize_returns(name, budget):
+    """An optimiser keeps nothing of a problem: a caller's objective often holds large
+    arrays (a voxel grid per call in spatialseg), and NLopt's callback cycles kept them."""
+    rec = Recorder(SHIFTED.fun, SHIFTED.grad)
+    alive = weakref.ref(rec)
+    build(name).maximize(rec.fun, SHIFTED.bounds, grad=rec.grad, max_evals=budget, seed=0)
+    del rec
+    gc.collect()
+    assert alive() is None
 
 
 @pytest.mark.parametrize("name", CONFIGS)
