@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from sklearn.cluster import KMeans
+from threadpoolctl import threadpool_limits
 
 from spatialseg.grid import VoxelGrid
 
@@ -415,7 +416,8 @@ def initial_motions(
             step /= float(np.median(np.linalg.norm(lift[:, 0], axis=1)))
         spread = _spread(centre, step, int(n_clusters), 2 if lift is None else 3)
         return InitResult(spread, flows, len(good), True, np.full(m, -1))
-    kmeans = KMeans(int(n_clusters), n_init=int(n_init), random_state=seed).fit(good)
+    with threadpool_limits(limits=1, user_api="openmp"):  # few points: threads cost more
+        kmeans = KMeans(int(n_clusters), n_init=int(n_init), random_state=seed).fit(good)
     thetas = _refine_clusters(a[ok], b[ok], kmeans.labels_, kmeans.cluster_centers_, max_condition)
     labels = np.full(m, -1)
     labels[sample[ok]] = _constraint_cost(a[ok], b[ok], thetas).argmin(axis=1)
