@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -41,6 +41,7 @@ from spatialseg.clustering import (
 )
 from spatialseg.compilation import announce_compilation
 from spatialseg.denoise import denoise_mask
+from spatialseg.executors import check_parallel, map_in_order
 from spatialseg.grid import VoxelGrid, grid_around, project_jacobian
 from spatialseg.identities import Boundary, boundary, link_clusters
 from spatialseg.objectives import make_objective
@@ -411,6 +412,7 @@ def check_config(cfg: Mapping[str, Any]) -> None:
     p_step_settings(cfg["clustering"], alone=False)
     p_step_settings(cfg["clustering"], alone=True)
     check_window_context(cfg["window"]["context"])
+    check_parallel(cfg["window"]["parallel"], cfg["window"]["workers"])
     depth_change_cap(cfg["clustering"])
     relabel_sigmas(cfg["clustering"], alone=False)
     relabel_sigmas(cfg["clustering"], alone=True)
@@ -1198,29 +1200,22 @@ def segment_recording(
     n = len(recording.events)
     labels = np.full(n, -1, dtype=np.int64)
     results, indices = [], []
-    seeds = np.random.default_rng(seed).integers(
-        0, 2**31 - 1, size=max(len(recording.depth_maps), 1)
-    )
     previous = None if handover is None else handover.velocities
     edge = None if handover is None else handover.boundary
     next_id = 0 if edge is None else edge.next_id
     xy = np.column_stack([recording.events.x, recording.events.y])
-    spans = recording.spans(cfg["window"]["context"])
-    count = len(recording.depth_maps) - 1 if first_window is None else None  # stream: unknown
-    for w, (index, span, inner) in enumerate(spans):
-        name = _window_name((first_window or 0) + w, count)
-        start = time.perf_counter()
-        res = segment_window(
-            span,
-            cfg,
-            optimizer,
-            seed=int(seeds[w]),
-            on_iteration=on_iteration,
-            previous=previous,
-            progress=name if progress else None,
-        )
-        if progress:
-            _log_window(name, len(index), len(span.events), res, time.perf_counter() - start)
+    windows = _segmented_windows(
+        recording.spans(cfg["window"]["context"]),
+        len(recording.depth_maps) - 1,
+        cfg,
+        optimizer,
+        seed=seed,
+        previous=previous,
+        on_iteration=on_iteration,
+        first_window=first_window,
+        progress=progress,
+    )
+    for index, inner, res in windows:
         previous = res.clustering.thetas
         own = res.labels[inner]
         ids, next_id = link_clusters(edge, xy[index], own, res.clustering.thetas.shape[0])
@@ -1234,6 +1229,94 @@ def segment_recording(
         probabilities[index[:, None], res.ids[None, :]] = res.probabilities
     carry = None if edge is None or previous is None else Handover(previous, edge)
     return SegmentationResult(labels, probabilities, results, indices, carry)
+
+
+@dataclass(frozen=True)
+class WindowTask:
+    """One window's work for a worker: :func:`segment_window`'s arguments (no previous
+    window's velocities and no per-iteration hook: windows on other workers are independent)."""
+
+    span: Recording
+    cfg: Mapping[str, Any]
+    optimizer: Any
+    seed: int
+
+    def __call__(self) -> tuple[WindowResult, float]:
+        """The window segmented, and the seconds it took."""
+        start = time.perf_counter()
+        result = segment_window(self.span, self.cfg, self.optimizer, seed=self.seed)
+        return result, time.perf_counter() - start
+
+
+def _run_task(task: WindowTask) -> tuple[WindowResult, float]:
+    """Run one window's task (a module-level function, so a process pool can pickle it)."""
+    return task()
+
+
+def _segmented_windows(
+    spans: Iterator[tuple[np.ndarray, Recording, np.ndarray]],
+    count: int,
+    cfg: Mapping[str, Any],
+    optimizer: Any,
+    *,
+    seed: int,
+    previous: np.ndarray | None,
+    on_iteration: Any,
+    first_window: int | None,
+    progress: bool,
+) -> Iterator[tuple[np.ndarray, np.ndarray, WindowResult]]:
+    """The ``count`` spans (``(event_indices, span, inner)`` of :meth:`Recording.spans`,
+    made one at a time) segmented, in order, each as ``(event_indices, inner, result)``:
+    one after the other, each handed the one before's velocities (the ``previous`` start),
+    or with ``window.parallel`` on workers that see no other window
+    (:mod:`spatialseg.executors`; every span is then made up front). With ``progress``, an
+    INFO line as each ends (``first_window`` not None: a stream's chunk, count unknown)."""
+    engine, workers = check_parallel(cfg["window"]["parallel"], cfg["window"]["workers"])
+    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=max(count, 1))
+    total = count if first_window is None else None
+    names = [_window_name((first_window or 0) + w, total) for w in range(count)]
+    if engine == "none":
+        hooks = names if progress else [None] * count  # DEBUG lines per iteration
+        done = _serial_windows(spans, cfg, optimizer, seeds, previous, on_iteration, hooks)
+    else:
+        spans = list(spans)
+        tasks = [
+            WindowTask(span, cfg, optimizer, int(s))
+            for (_, span, _), s in zip(spans, seeds, strict=False)
+        ]
+        runs = map_in_order(_run_task, tasks, engine=engine, workers=workers)
+        done = ((window, *run) for window, run in zip(spans, runs, strict=True))
+    for name, ((index, span, inner), res, seconds) in zip(names, done, strict=True):
+        if progress:
+            _log_window(name, len(index), len(span.events), res, seconds)
+        yield index, inner, res
+
+
+def _serial_windows(
+    spans: Iterator[tuple[np.ndarray, Recording, np.ndarray]],
+    cfg: Mapping[str, Any],
+    optimizer: Any,
+    seeds: np.ndarray,
+    previous: np.ndarray | None,
+    on_iteration: Any,
+    names: list[str | None],
+) -> Iterator[tuple[tuple[np.ndarray, Recording, np.ndarray], WindowResult, float]]:
+    """The spans segmented here, one after the other, each from the one before's velocities
+    too (the ``previous`` start); each span with its result and seconds."""
+    for name, window, window_seed in zip(names, spans, seeds, strict=False):
+        span = window[1]
+        start = time.perf_counter()
+        res = segment_window(
+            span,
+            cfg,
+            optimizer,
+            seed=int(window_seed),
+            on_iteration=on_iteration,
+            previous=previous,
+            progress=name,
+        )
+        previous = res.clustering.thetas
+        yield window, res, time.perf_counter() - start
 
 
 def segment_loaded(
