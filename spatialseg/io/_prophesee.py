@@ -12,7 +12,8 @@ base) from one block to the next, so a file of any size streams in bounded memor
 * EVT 3.0: 16-bit words, type in bits 15..12: EVT_ADDR_Y 0x0 (y in 10..0), EVT_ADDR_X 0x2
   (polarity 11, x 10..0), VECT_BASE_X 0x3 (polarity 11, x 10..0), VECT_12 0x4 / VECT_8 0x5
   (a bit mask of events at base x + i; the base then advances by 12 / 8), EVT_TIME_LOW 0x6
-  and EVT_TIME_HIGH 0x8 (timestamp bits 11..0 and 23..12).
+  and EVT_TIME_HIGH 0x8 (timestamp bits 11..0 and 23..12); a TIME_HIGH that changes the
+  time base sets bits 11..0 to 0 until the next TIME_LOW.
 * ``.dat``: ``% Key value`` lines (``% Width W``, ``% Height H``), one byte event type
   (0 Event2d or 12 EventCD), one byte event size (8), then 8-byte records: uint32
   timestamp, uint32 with x in bits 13..0, y in 27..14, polarity in 31..28.
@@ -230,11 +231,17 @@ def _decode_evt3(path: Path, w: np.ndarray, state: _State) -> Arrays:
     _check_types(path, types, _EVT3_TYPES, state, "EVT 3.0")
     payload = (w & 0xFFF).astype(np.int32)
     is_high, is_low, is_y = types == 0x8, types == 0x6, types == 0x0
-    highs, state.wraps = _unwrap(payload[is_high], state.last_raw, state.wraps, 1 << 12)
+    raw_highs = payload[is_high]
+    highs, state.wraps = _unwrap(raw_highs, state.last_raw, state.wraps, 1 << 12)
     full = np.zeros(w.size, np.int64)
     full[is_high] = highs
     high = _forward_fill(is_high, full, state.time_high)
-    low = _forward_fill(is_low, payload, state.time_low)
+    # A TIME_HIGH that changes the time base restarts the low part at 0 (as Prophesee's and
+    # faery's decoders do): an event may follow it without a TIME_LOW.
+    new_high = raw_highs != np.concatenate(([state.last_raw], raw_highs[:-1]))
+    sets_low = is_low.copy()
+    sets_low[np.flatnonzero(is_high)[new_high]] = True
+    low = _forward_fill(sets_low, np.where(is_low, payload, 0), state.time_low)
     y = _forward_fill(is_y, payload & 0x7FF, state.y)
     base_p0 = state.base_p
     base = _evt3_vector_base(types, payload, state)
@@ -313,14 +320,45 @@ def _dat_bytes(events: EventStream, t_us: np.ndarray) -> bytes:
     return header + bytes((12, _DAT_RECORD)) + records.tobytes()
 
 
-def _interleave(columns: list[np.ndarray], keep: list[np.ndarray], dtype: str) -> bytes:
-    """Words of several columns, row by row, keeping the entries ``keep`` marks."""
-    words = np.stack([c.astype(dtype) for c in columns], axis=1)
-    return words[np.stack(keep, axis=1)].tobytes()
+def _bridges(high: np.ndarray, period: int) -> tuple[np.ndarray, np.ndarray]:
+    """Extra TIME_HIGH values (unwrapped, ascending) across gaps, and the event each precedes.
+
+    Between the events' own values: every quarter ``period`` and the last value before each
+    wrap-around (from the start of the first event's period on), so every wrap shows as a
+    drop of ``period - 1``, which every decoder counts, whatever the gap (Prophesee's OpenEB
+    counts a drop of at least half the period, spatialseg more than half, faery's EVT 3.0
+    decoder only a drop of ``period - 1``).
+    """
+    step = period // 4
+    first, last = int(high[0]) - int(high[0]) % period, int(high[-1])
+    candidates = np.union1d(
+        np.arange(first, last + 1, step, dtype=np.int64),
+        np.arange(first + period - 1, last + 1, period, dtype=np.int64),
+    )
+    before = np.searchsorted(high, candidates)  # the first event at or after each value
+    extra = high[before] != candidates
+    return candidates[extra], before[extra]
+
+
+def _interleave(
+    columns: list[np.ndarray],
+    keep: list[np.ndarray],
+    dtype: str,
+    extra: tuple[np.ndarray, np.ndarray],
+) -> bytes:
+    """Words of several columns, row by row, keeping the entries ``keep`` marks, and the
+    ``extra`` words ``(row, word)`` before the first word of their row, in the order given."""
+    kept = np.stack(keep, axis=1)
+    words = np.stack([c.astype(dtype) for c in columns], axis=1)[kept]
+    per_row = kept.sum(axis=1)
+    first_word = np.cumsum(per_row) - per_row
+    rows, extra_words = extra
+    return np.insert(words, first_word[rows], extra_words.astype(dtype)).tobytes()
 
 
 def _evt2_bytes(events: EventStream, t_us: np.ndarray) -> bytes:
-    """EVT 2.0 words: a TIME_HIGH whenever bits 33..6 change, then one CD word per event."""
+    """EVT 2.0 words: a TIME_HIGH whenever bits 33..6 change (and _bridges across gaps),
+    then one CD word per event."""
     high = t_us >> 6
     new_high = np.concatenate(([True], high[1:] != high[:-1]))
     cd = (
@@ -329,20 +367,24 @@ def _evt2_bytes(events: EventStream, t_us: np.ndarray) -> bytes:
         | (events.x.astype(np.int64) << 11)
         | events.y
     )
+    values, before = _bridges(high, 1 << 28)
+    extra = (before, (0x8 << 28) | (values & 0x0FFFFFFF))
     time_high = (0x8 << 28) | (high & 0x0FFFFFFF)
-    return _interleave([time_high, cd], [new_high, np.ones_like(new_high)], "<u4")
+    return _interleave([time_high, cd], [new_high, np.ones_like(new_high)], "<u4", extra)
 
 
 def _evt3_bytes(events: EventStream, t_us: np.ndarray) -> bytes:
-    """EVT 3.0 words: TIME_HIGH, TIME_LOW, ADDR_Y when they change, then one ADDR_X per event."""
-    high, low = (t_us >> 12) & 0xFFF, t_us & 0xFFF
-    new_high = np.concatenate(([True], (t_us >> 12)[1:] != (t_us >> 12)[:-1]))
+    """EVT 3.0 words: TIME_HIGH (and _bridges across gaps), TIME_LOW, ADDR_Y when they
+    change, then one ADDR_X per event."""
+    high, low = t_us >> 12, t_us & 0xFFF
+    new_high = np.concatenate(([True], high[1:] != high[:-1]))
     new_low = new_high | np.concatenate(([True], low[1:] != low[:-1]))
     new_y = new_high | np.concatenate(([True], events.y[1:] != events.y[:-1]))
     x_word = (0x2 << 12) | ((events.p > 0).astype(np.int64) << 11) | events.x
-    columns = [(0x8 << 12) | high, (0x6 << 12) | low, events.y.astype(np.int64), x_word]
+    columns = [(0x8 << 12) | (high & 0xFFF), (0x6 << 12) | low, events.y.astype(np.int64), x_word]
     keep = [new_high, new_low, new_y, np.ones_like(new_y)]
-    return _interleave(columns, keep, "<u2")
+    values, before = _bridges(high, 1 << 12)
+    return _interleave(columns, keep, "<u2", (before, (0x8 << 12) | (values & 0xFFF)))
 
 
 def write_prophesee(events: EventStream, path: str | Path, *, encoding: str = "evt3") -> None:
@@ -350,6 +392,9 @@ def write_prophesee(events: EventStream, path: str | Path, *, encoding: str = "e
 
     Times are rounded to whole microseconds and must be >= 0. Meant for tests and for
     converting recordings; EVT 3.0 is written without vector words (valid, not compact).
+    Gaps of any length are kept; the formats store times modulo 2**24 us (EVT 3.0), 2**34 us
+    (EVT 2.0) or 2**32 us (``.dat``), so a first event later than that reads back earlier
+    by whole periods, and ``.dat`` keeps only gaps shorter than 2**31 us (35.8 min).
     """
     path = Path(path)
     suffix = path.suffix.lower()
