@@ -10,7 +10,7 @@ are grouped by the ``--by`` keys; a key K is read from the run's param K (the fl
 config, e.g. ``n_clusters``, ``seed``, ``clustering.evals_per_step``), else K.name
 (``scene`` -> ``scene.name``), else the job's command-line override ``K=V`` (how a config
 group such as ``optimizer=pso`` was chosen), else K._target_ (the optimiser's class when the
-sweep did not choose it). Failed jobs have no params, only their overrides.
+sweep did not choose it). A job logs its params as it starts, so failed jobs have them too.
 
 Per group: runs, finished, failed, and for each metric (the final values a run logs:
 ``variance`` = total contrast, ``accuracy``, ``mean_iou``, ``time_total`` = seconds from
@@ -37,7 +37,7 @@ from matplotlib.figure import Figure
 OVERRIDES_TAG = "spatialseg.overrides"
 PARENT_TAG = "mlflow.parentRunId"
 PAGE = 1000  # runs per search request
-NOT_SET = "n/a"  # a failed job that did not override a --by key has no value for it
+NOT_SET = "n/a"  # a run without the --by key (param, name, override or target)
 
 
 class ReportError(Exception):

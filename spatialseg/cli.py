@@ -6,7 +6,9 @@ one ``error:`` line on stderr and exit status 2, never a traceback. Set
 failed, it ends with one ``error: N of M jobs failed`` line and exit status 1. A config
 option that no config directory holds (``+scene=nosuch``; a user's own go in ``--config-dir``)
 ends in one ``error:`` line listing the options, exit status 2. SIGTERM ends a run like an
-error (exit status 143), so it leaves no temporary files behind.
+error (exit status 143), so it leaves no temporary files behind; Ctrl-C likewise ends it in
+one line with exit status 130. With MLflow tracking, the job's run opens before any work and
+ends FINISHED, FAILED or (SIGTERM, Ctrl-C) KILLED.
 
 A run directory holds one run: before it writes (before it validates the config, even), a
 run removes the outputs an earlier run left in a reused ``hydra.run.dir``. The run ends with
@@ -27,7 +29,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import hydra
 import numpy as np
@@ -39,6 +41,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from spatialseg.checks import boolean_setting, plural
 from spatialseg.config import build_optimizer, conf_dir, validate_run
+
+if TYPE_CHECKING:
+    from spatialseg.tracking import LiveRun
 
 __all__ = ["guarded", "launch", "main", "run"]
 
@@ -136,21 +141,31 @@ def _check_output(output: Mapping[str, Any]) -> None:
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
-    """Validate the config, segment the scene, write the outputs; return result.json's content."""
-    from spatialseg.pipeline import check_config, segment_loaded
-    from spatialseg.results import summarise, write_outputs
-    from spatialseg.scenes import load_scene
-    from spatialseg.tracking import record
+    """Validate the config, segment the scene, write the outputs; return result.json's content.
+
+    The MLflow run is open from here on (:func:`spatialseg.tracking.live_run`): it shows the
+    job as RUNNING while it loads and segments, and ends as the job ends."""
+    from spatialseg.tracking import live_run
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     _fresh_run_dir(out_dir)
+    with live_run(cfg) as tracked:
+        return _run_tracked(cfg, out_dir, tracked)
+
+
+def _run_tracked(cfg: DictConfig, out_dir: Path, tracked: LiveRun) -> dict[str, Any]:
+    """:func:`run`'s work once its MLflow run is open (``tracked``)."""
+    from spatialseg.pipeline import check_config, segment_loaded
+    from spatialseg.results import summarise, write_outputs
+    from spatialseg.scenes import load_scene
+
     validate_run(cfg)
     plain = OmegaConf.to_container(cfg, resolve=True)
     check_config(plain)
     _check_output(plain["output"])
     start = time.perf_counter()
     if cfg.scene.get("stream"):
-        return run_stream(cfg, plain, out_dir)
+        return run_stream(cfg, plain, out_dir, tracked)
     recording = load_scene(
         cfg.scene,
         seed=int(cfg.seed),
@@ -172,13 +187,22 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         log.info("drawing %s ...", plural(figure_count(len(seg.windows)), "figure"))
         save_result_figures(out_dir, recording, seg)
     write_outputs(out_dir, recording, seg, summary, plain)
-    _report(summary, out_dir, record(cfg, summary, out_dir))
+    _report(summary, out_dir, tracked.finish(summary, out_dir))
     return summary
 
 
-def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[str, Any]:
+def _real_time(span: tuple[float, float], wall: float) -> dict[str, float]:
+    """The recording's duration (last minus first event time) and real-time factor."""
+    recording = span[1] - span[0]
+    return {"recording_s": recording, "real_time_factor": recording / wall}
+
+
+def run_stream(
+    cfg: DictConfig, plain: dict[str, Any], out_dir: Path, tracked: LiveRun
+) -> dict[str, Any]:
     """``scene.stream=true``: read, segment and write the file window by window, holding one
-    window in memory; the outputs are those of any run except the figures and metrics."""
+    window in memory; the outputs are those of any run except the figures and metrics. Each
+    window's metrics go to MLflow as it ends; the end reports the real-time factor."""
     from spatialseg.pipeline import segment_loaded
     from spatialseg.results import (
         ArrayStream,
@@ -190,7 +214,6 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
     )
     from spatialseg.scenes import stream_scene
     from spatialseg.segmentation_h5 import SegmentationH5
-    from spatialseg.tracking import record
 
     start = time.perf_counter()
     if plain["depth"]["name"] in ("recording", "onnx"):
@@ -206,6 +229,7 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
         SegmentationH5(h5_path) if cfg.output.h5 else contextlib.nullcontext() as h5,
     ):
         optimizer, windows, handover = build_optimizer(cfg), [], None
+        span = (np.inf, -np.inf)  # the first and last event times seen
         stream = stream_scene(plain["scene"], window_events=int(cfg.window.events))
         for w, window in enumerate(stream):
             seed = int(np.random.default_rng([int(cfg.seed), w]).integers(2**31 - 1))
@@ -223,10 +247,22 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
             probabilities.append_segmentation(seg)
             if h5 is not None:
                 h5.append_events(window.events)
-            windows += [window_summary(res, None, None) for res in seg.windows]
+            t = window.events.t
+            span = (min(span[0], float(t.min())), max(span[1], float(t.max())))
+            ended = [window_summary(res, None, None) for res in seg.windows]
+            tracked.log_windows(ended)
+            windows += ended
         if not windows:
             raise ValueError(f"{cfg.scene.path or cfg.scene.name}: the file has no events")
-        timings = {"total": time.perf_counter() - start}
+        wall = time.perf_counter() - start
+        timings = {"total": wall, **_real_time(span, wall)}
+        log.info(
+            "streamed %.2f s of recording in %.2f s: real-time factor %.2f (> 1: faster "
+            "than real time)",
+            timings["recording_s"],
+            wall,
+            timings["real_time_factor"],
+        )
         summary = run_summary(str(cfg.scene.name), labels.rows, plain, windows, timings)
         summary["stream"] = True
         labels.finish()
@@ -234,15 +270,15 @@ def run_stream(cfg: DictConfig, plain: dict[str, Any], out_dir: Path) -> dict[st
         if h5 is not None:
             h5.finish(labels_path, probabilities_path, summary, plain)
     write_json(result_path, summary)
-    _report(summary, out_dir, record(cfg, summary, out_dir))
+    _report(summary, out_dir, tracked.finish(summary, out_dir))
     return summary
 
 
-def _fail_job(cfg: DictConfig, exc: Exception) -> None:
-    """Record a failed multirun job and report it, so the sweep goes on with the next job."""
-    from spatialseg.tracking import mark_job, record_failure
+def _fail_job(exc: Exception) -> None:
+    """Record a failed multirun job and report it, so the sweep goes on with the next job
+    (its MLflow run has ended FAILED already)."""
+    from spatialseg.tracking import mark_job
 
-    record_failure(cfg, exc)
     mark_job(exc)
     print(f"error: {exc}", file=sys.stderr)
     if not isinstance(exc, USER_ERRORS):
@@ -275,7 +311,8 @@ def _exit_on_sigterm() -> Iterator[None]:
 
 
 def guarded(task: Callable[[DictConfig], object]) -> Callable[[DictConfig], None]:
-    """Wrap a Hydra task so a user mistake ends in one ``error:`` line and exit status 2.
+    """Wrap a Hydra task so a user mistake ends in one ``error:`` line and exit status 2,
+    Ctrl-C in one line and exit status 130.
 
     In a multirun, a failing job (any exception) is recorded as failed and the sweep goes on;
     every job leaves its outcome for the sweep's exit status (:func:`tracking.mark_job`).
@@ -288,11 +325,16 @@ def guarded(task: Callable[[DictConfig], object]) -> Callable[[DictConfig], None
             with _exit_on_sigterm():
                 task(cfg)
             mark_job(None)
+        except KeyboardInterrupt:
+            if os.environ.get("SPATIALSEG_DEBUG"):
+                raise
+            print("error: interrupted by SIGINT", file=sys.stderr)
+            raise SystemExit(128 + signal.SIGINT) from None
         except Exception as exc:
             if os.environ.get("SPATIALSEG_DEBUG"):
                 raise
             if HydraConfig.get().mode == RunMode.MULTIRUN:
-                _fail_job(cfg, exc)
+                _fail_job(exc)
                 return
             if not isinstance(exc, USER_ERRORS):
                 raise

@@ -1,11 +1,16 @@
 """MLflow tracking: each run (or multirun job) becomes one MLflow run, jobs under a parent.
 
-A run records the composed config (flattened params and ``config.yaml``), the
-per-iteration curves as stepped metrics, the final metrics and its output files. The
-outputs are on disk before anything is sent, and a tracking failure only logs one warning
-line: tracking never loses a result. In a multirun, :class:`SweepCallback` creates the
-store, the experiment and a parent run before the jobs start and writes the parent's id to
-``mlflow_parent.json`` in the sweep directory, where each job finds it.
+A job's run opens when the job starts (:func:`live_run`), so a long job shows as RUNNING
+with its composed config (flattened params and ``config.yaml``) and its code version (tags
+``spatialseg.version`` and, in a git checkout, ``mlflow.source.git.commit``). A streamed run
+logs each window's metrics as the window ends; a run from memory logs them at its end, with
+the per-iteration curves as stepped metrics, the whole run's metrics and its output files.
+The run ends FINISHED, FAILED on an error (its message as the tag ``error``) or KILLED on
+SIGTERM or Ctrl-C. The outputs are on disk before they are sent, and a tracking failure
+only logs one warning line: tracking never loses a result. In a multirun,
+:class:`SweepCallback` creates the store, the experiment and a parent run before the jobs
+start and writes the parent's id to ``mlflow_parent.json`` in the sweep directory, where
+each job finds it; after the jobs it logs the sweep's summary to the parent.
 
 Each multirun job also leaves its outcome as a file in ``<sweep dir>/jobs/`` (tracking on or
 off, any launcher: joblib and Submitit jobs run in other processes); after the sweep,
@@ -20,8 +25,10 @@ import json
 import logging
 import os
 import shlex
+import statistics
+import subprocess
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,13 +39,14 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 __all__ = [
+    "LiveRun",
     "SweepCallback",
     "SweepTally",
     "browse_hint",
+    "git_commit",
     "last_sweep",
+    "live_run",
     "mark_job",
-    "record",
-    "record_failure",
 ]
 
 log = logging.getLogger("spatialseg")
@@ -49,6 +57,7 @@ AXES = "xyz"
 MAX_BATCH = 1000  # metrics per log_batch call (MLflow's limit)
 MAX_PARAMS = 100  # params per log_batch call (MLflow's limit)
 MAX_PARAM_CHARS = 6000  # MLflow's limit on a param value
+GIT_TIMEOUT = 2.0  # seconds per git call for the commit tag
 
 
 def _settings(cfg: DictConfig) -> DictConfig | None:
@@ -140,10 +149,24 @@ def _window_finals(window: Mapping[str, Any], prefix: str) -> Iterator[tuple[str
     yield f"{prefix}converged", float(window["converged"])
 
 
+def _window_metrics(
+    window: Mapping[str, Any], index: int, *, prefixed: bool
+) -> Iterator[tuple[str, float, int]]:
+    """Window ``index``'s curves (under ``window<i>/`` if ``prefixed``) and final values."""
+    yield from _curves(window, f"window{index}/" if prefixed else "")
+    for key, value in _window_finals(window, f"window{index}/"):
+        yield key, value, 0
+
+
+def _timing_key(key: str) -> str:
+    """A ``timings`` entry's metric name: ``time_<stage>`` for seconds, a rate as it is."""
+    return key if key == "real_time_factor" else f"time_{key}"
+
+
 def _finals(summary: Mapping[str, Any]) -> Iterator[tuple[str, float]]:
-    """``(key, value)`` of the final metrics of the whole run (``variance``: the total
-    contrast summed over the windows; ``iterations``: all windows'; ``converged``: every
-    window), accuracy, IoU and times, then each window's under ``window<i>/``."""
+    """``(key, value)`` of the whole run's final metrics (``variance``: the total contrast
+    summed over the windows; ``iterations``: all windows'; ``converged``: every window),
+    accuracy, IoU and times."""
     windows = summary["windows"]
     yield "variance", sum(_contrast(w) for w in windows)
     yield "iterations", summary["iterations"]
@@ -156,29 +179,21 @@ def _finals(summary: Mapping[str, Any]) -> Iterator[tuple[str, float]]:
     for obj, iou in (metrics.get("iou") or {}).items():
         yield f"iou_object{obj}", iou
     for key, seconds in {**summary["timings"], **_stage_times(windows)}.items():
-        yield f"time_{key}", seconds
-    for i, window in enumerate(windows):
-        yield from _window_finals(window, f"window{i}/")
+        yield _timing_key(key), seconds
 
 
-def _metrics(summary: Mapping[str, Any]) -> list[Any]:
-    """Every metric point of a run as MLflow ``Metric`` objects."""
+def _log_metrics(client: Any, run_id: str, points: Iterable[tuple[str, float, int]]) -> None:
+    """Log ``(key, value, step)`` points, stamped now, in batches of MLflow's limit."""
     from mlflow.entities import Metric
 
     now = int(time.time() * 1000)
-    windows = summary["windows"]
-    points = [
-        Metric(key, float(value), now, step)
-        for i, window in enumerate(windows)
-        for key, value, step in _curves(window, f"window{i}/" if len(windows) > 1 else "")
-    ]
-    return points + [Metric(key, float(value), now, 0) for key, value in _finals(summary)]
+    metrics = [Metric(key, float(value), now, step) for key, value, step in points]
+    for i in range(0, len(metrics), MAX_BATCH):
+        client.log_batch(run_id, metrics=metrics[i : i + MAX_BATCH])
 
 
-def _log_run(
-    client: Any, run_id: str, cfg: DictConfig, summary: Mapping[str, Any], out: Path
-) -> None:
-    """Params, config.yaml, metrics in batches, and the output files of one run."""
+def _log_config(client: Any, run_id: str, cfg: DictConfig) -> None:
+    """The composed config as flattened params and as ``config.yaml``."""
     from mlflow.entities import Param
 
     plain = OmegaConf.to_container(cfg, resolve=True)
@@ -186,12 +201,48 @@ def _log_run(
     for i in range(0, len(params), MAX_PARAMS):
         client.log_batch(run_id, params=params[i : i + MAX_PARAMS])
     client.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
-    metrics = _metrics(summary)
-    for i in range(0, len(metrics), MAX_BATCH):
-        client.log_batch(run_id, metrics=metrics[i : i + MAX_BATCH])
+
+
+def _log_outputs(client: Any, run_id: str, out: Path) -> None:
+    """The run directory's output files (labels, result.json, figures) as artifacts."""
     for path in sorted(out.iterdir()):
         if path.is_file() and path.suffix in {".npy", ".json", ".png"}:
             client.log_artifact(run_id, str(path))
+
+
+def _git(folder: Path, *args: str) -> str | None:
+    """``git ARGS``'s output in ``folder``; None when git is missing, fails or hangs."""
+    try:
+        done = subprocess.run(
+            ["git", *args],
+            cwd=folder,
+            capture_output=True,
+            text=True,
+            timeout=GIT_TIMEOUT,
+            check=True,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return done.stdout.strip()
+
+
+def git_commit(folder: Path | None = None) -> str | None:
+    """HEAD's commit of the git checkout that tracks the package (``folder``), else None."""
+    folder = folder or Path(__file__).parent
+    if _git(folder, "ls-files", "--error-unmatch", "__init__.py") is None:
+        return None  # not a checkout, or an installed copy inside someone else's repository
+    return _git(folder, "rev-parse", "HEAD") or None
+
+
+def _code_tags() -> dict[str, str]:
+    """The code version a run ran: the package's version and, in a checkout, its commit."""
+    from spatialseg import __version__
+
+    tags = {"spatialseg.version": __version__}
+    commit = git_commit()
+    if commit is not None:
+        tags["mlflow.source.git.commit"] = commit
+    return tags
 
 
 def _parent_id() -> str | None:
@@ -203,11 +254,11 @@ def _parent_id() -> str | None:
     return json.loads(path.read_text())["run_id"] if path.is_file() else None
 
 
-def _start_run(cfg: DictConfig, settings: DictConfig) -> tuple[Any, str]:
+def _start_run(settings: DictConfig) -> tuple[Any, str]:
     """Create this job's MLflow run (a child of the sweep's parent, if any)."""
     hc = HydraConfig.get()
     client = _client(settings, hc.runtime.cwd)
-    tags = {"spatialseg.overrides": " ".join(hc.overrides.task)[:MAX_PARAM_CHARS]}
+    tags = {"spatialseg.overrides": " ".join(hc.overrides.task)[:MAX_PARAM_CHARS], **_code_tags()}
     parent = _parent_id()
     if parent is not None:
         tags["mlflow.parentRunId"] = parent
@@ -224,39 +275,105 @@ def browse_hint(uri: str, run_id: str) -> str:
     return f"run {run_id}; to browse: mlflow ui --backend-store-uri {shlex.quote(uri)}"
 
 
-def record(cfg: DictConfig, summary: Mapping[str, Any], out_dir: Path) -> str | None:
-    """Record a finished run in MLflow and return how to open it (:func:`browse_hint`);
-    None when tracking is off, or the store is unavailable (a one-line warning)."""
-    settings = _settings(cfg)
-    if settings is None:
-        return None
-    log.info("logging to MLflow ...")  # the store's logging takes seconds at a run's end
-    try:
-        client, run_id = _start_run(cfg, settings)
+class LiveRun:
+    """The job's MLflow run while it runs; idle when tracking is off or the store failed."""
+
+    def __init__(self) -> None:
+        self._client: Any = None
+        self.run_id = ""
+        self._windows = 0  # windows whose metrics are logged
+
+    def start(self, cfg: DictConfig) -> None:
+        """Create the run with its code version and config, and say how to open it."""
+        settings = _settings(cfg)
+        if settings is None:
+            return
         try:
-            _log_run(client, run_id, cfg, summary, out_dir)
-        except Exception:
-            with contextlib.suppress(Exception):
-                client.set_terminated(run_id, "FAILED")
-            raise
-        client.set_terminated(run_id, "FINISHED")
-    except Exception as exc:
-        _warn(exc)
+            self._client, self.run_id = _start_run(settings)
+        except Exception as exc:
+            _warn(exc)
+            return
+        if self._send(lambda client: _log_config(client, self.run_id, cfg)):
+            self._say("RUNNING")
+
+    def log_windows(self, windows: Sequence[Mapping[str, Any]]) -> None:
+        """Log windows as they end (a stream's chunk), each under ``window<i>/``."""
+        first, self._windows = self._windows, self._windows + len(windows)
+        points = [
+            point
+            for i, window in enumerate(windows, start=first)
+            for point in _window_metrics(window, i, prefixed=True)
+        ]
+        self._send(lambda client: _log_metrics(client, self.run_id, points))
+
+    def finish(self, summary: Mapping[str, Any], out_dir: Path) -> str | None:
+        """Log the run's final metrics, unlogged windows and files; return how to open it."""
+        if self._client is None:
+            return None
+        log.info("logging to MLflow ...")  # the store's logging takes seconds at a run's end
+        windows = summary["windows"]
+        prefixed = self._windows > 0 or len(windows) > 1
+        points = [(key, value, 0) for key, value in _finals(summary)]
+        for i, window in enumerate(windows[self._windows :], start=self._windows):
+            points += _window_metrics(window, i, prefixed=prefixed)
+        self._windows = len(windows)
+        sent = self._send(lambda client: _log_metrics(client, self.run_id, points))
+        if sent and self._send(lambda client: _log_outputs(client, self.run_id, out_dir)):
+            return browse_hint(str(self._client.tracking_uri), self.run_id)
         return None
-    return browse_hint(str(client.tracking_uri), run_id)
+
+    def end(self, status: str, error: BaseException | None = None) -> None:
+        """End the run as ``status`` (FINISHED, FAILED, KILLED), ``error`` as its tag."""
+        if self._client is None:
+            return
+        try:
+            if error is not None:
+                text = f"{type(error).__name__}: {error}"[:MAX_PARAM_CHARS]
+                self._client.set_tag(self.run_id, "error", text)
+            self._client.set_terminated(self.run_id, status)
+        except Exception as exc:
+            _warn(exc)
+        else:
+            if status != "FINISHED":  # a finished run's report names it
+                self._say(status)
+        finally:
+            self._client = None
+
+    def _say(self, status: str) -> None:
+        """Log the run's ``status`` and how to open it."""
+        log.info("MLflow: %s %s", status, browse_hint(str(self._client.tracking_uri), self.run_id))
+
+    def _send(self, action: Callable[[Any], object]) -> bool:
+        """Run a logging ``action``; on an error warn once, end the run FAILED, go idle."""
+        if self._client is None:
+            return False
+        try:
+            action(self._client)
+        except Exception as exc:
+            _warn(exc)
+            with contextlib.suppress(Exception):
+                self._client.set_terminated(self.run_id, "FAILED")
+            self._client = None
+            return False
+        return True
 
 
-def record_failure(cfg: DictConfig, error: BaseException) -> None:
-    """Record a run that raised ``error`` as a FAILED MLflow run with the error as a tag."""
-    settings = _settings(cfg)
-    if settings is None:
-        return
+@contextlib.contextmanager
+def live_run(cfg: DictConfig) -> Iterator[LiveRun]:
+    """This job's MLflow run over the block: FINISHED when it ends, FAILED on an exception,
+    KILLED on SIGTERM or Ctrl-C (the :class:`SystemExit` the command line's SIGTERM handler
+    raises, Python's :class:`KeyboardInterrupt`)."""
+    run = LiveRun()
     try:
-        client, run_id = _start_run(cfg, settings)
-        client.set_tag(run_id, "error", f"{type(error).__name__}: {error}"[:MAX_PARAM_CHARS])
-        client.set_terminated(run_id, "FAILED")
+        run.start(cfg)
+        yield run
     except Exception as exc:
-        _warn(exc)
+        run.end("FAILED", exc)
+        raise
+    except BaseException:
+        run.end("KILLED")
+        raise
+    run.end("FINISHED")
 
 
 @dataclass(frozen=True)
@@ -304,8 +421,46 @@ def _tally(sweep_dir: Path, parent_run_id: str) -> SweepTally:
     return SweepTally(failed, total, folder, parent_run_id)
 
 
+def _children(client: Any, parent_run_id: str) -> list[Any]:
+    """The MLflow runs of a sweep's jobs (every page of the search)."""
+    experiment = client.get_run(parent_run_id).info.experiment_id
+    query = f"tags.mlflow.parentRunId = '{parent_run_id}'"
+    runs: list[Any] = []
+    token = None
+    while True:
+        page = client.search_runs([experiment], query, page_token=token)
+        runs += page
+        token = page.token
+        if not token:
+            return runs
+
+
+def _sweep_metrics(tally: SweepTally, children: Sequence[Any]) -> dict[str, float]:
+    """The parent run's summary: job counts (outcome files) and the jobs' accuracy spread."""
+    summary = {
+        "jobs": float(tally.total),
+        "jobs_finished": float(tally.total - tally.failed),
+        "jobs_failed": float(tally.failed),
+    }
+    accuracy = [r.data.metrics["accuracy"] for r in children if "accuracy" in r.data.metrics]
+    if accuracy:
+        summary["accuracy_median"] = statistics.median(accuracy)
+        summary["accuracy_min"] = min(accuracy)
+        summary["accuracy_max"] = max(accuracy)
+    return summary
+
+
+def _best_job(children: Sequence[Any]) -> str | None:
+    """The job run of the highest ``accuracy``, as ``name (run id)``; None without one."""
+    scored = [r for r in children if "accuracy" in r.data.metrics]
+    if not scored:
+        return None
+    best = max(scored, key=lambda r: r.data.metrics["accuracy"])
+    return f"{best.info.run_name} ({best.info.run_id})"
+
+
 class SweepCallback(Callback):
-    """Open the sweep's parent run before the jobs, close it after (FAILED if the sweep dies)."""
+    """The sweep's parent run: opened before the jobs, summarised and closed after them."""
 
     def __init__(self) -> None:
         self._client: Any = None
@@ -325,7 +480,8 @@ class SweepCallback(Callback):
             client = _client(settings, config.hydra.runtime.cwd)
             experiment = _experiment_id(client, settings.experiment)
             sweep_dir = Path(str(config.hydra.sweep.dir))
-            run = client.create_run(experiment, run_name=f"sweep {sweep_dir.name}")
+            name = f"sweep {sweep_dir.name}"
+            run = client.create_run(experiment, tags=_code_tags(), run_name=name)
         except Exception as exc:
             _warn(exc)
             return
@@ -335,15 +491,31 @@ class SweepCallback(Callback):
         atexit.register(self._close, "FAILED")
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        """Count the failed jobs (for the exit status), tag and finish the parent run."""
+        """Count the failed jobs (for the exit status); log the summary, finish the parent."""
         global _last_sweep
         _last_sweep = _tally(Path(str(config.hydra.sweep.dir)), self._run_id)
-        if self._run_id:
-            atexit.unregister(self._close)
-            with contextlib.suppress(Exception):
-                self._client.set_tag(self._run_id, "jobs_failed", str(_last_sweep.failed))
-                self._client.set_tag(self._run_id, "jobs_total", str(_last_sweep.total))
-            self._close("FINISHED")
+        if not self._run_id:
+            return
+        atexit.unregister(self._close)
+        try:
+            self._summarise(_last_sweep)
+        except Exception as exc:
+            _warn(exc)
+        self._close("FINISHED")
+        hint = browse_hint(str(self._client.tracking_uri), self._run_id)
+        print(f"sweep: {_last_sweep.total} jobs, {_last_sweep.failed} failed; MLflow parent {hint}")
+
+    def _summarise(self, tally: SweepTally) -> None:
+        """Log the sweep's summary metrics (:func:`_sweep_metrics`) and tags to the parent."""
+        children = _children(self._client, self._run_id)
+        metrics = _sweep_metrics(tally, children)
+        _log_metrics(self._client, self._run_id, [(k, v, 0) for k, v in metrics.items()])
+        tags = {"jobs_failed": str(tally.failed), "jobs_total": str(tally.total)}
+        best = _best_job(children)
+        if best is not None:
+            tags["best_job"] = best
+        for key, value in tags.items():
+            self._client.set_tag(self._run_id, key, value)
 
     def _close(self, status: str) -> None:
         """Terminate the parent run with ``status``, warning if the store is gone."""

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from spatialseg.results import is_output
 from tests.test_cli import spatialseg
@@ -251,6 +252,49 @@ def test_streamed_run_failing_mid_way_leaves_no_temporary_files(recording_dir, t
     assert res.returncode == 2 and "events.txt line 2500: y=400" in res.stderr
     assert "window 0: 1000 events" in res.stdout  # it failed after a window was written
     assert sorted(p.name for p in out.iterdir()) == [".hydra", "cli.log"]
+
+
+def test_streamed_run_reports_its_real_time_factor_and_logs_windows_live(recording_dir, tmp_path):
+    """A streamed run ends with the recording's duration, its wall time and their ratio (in
+    the log and result.json); each window's metrics reach MLflow as the window ends."""
+    from mlflow.tracking import MlflowClient
+
+    from spatialseg.io import read_recording
+
+    db, out = tmp_path / "mlflow.db", tmp_path / "run"
+    res = spatialseg(
+        *STREAM,
+        f"scene.path={recording_dir}",
+        "window.events=1000",
+        f"tracking.uri=sqlite:///{db}",
+        f"hydra.run.dir={out}",
+        cwd=tmp_path,
+    )
+    assert res.returncode == 0, res.stderr
+    result = json.loads((out / "result.json").read_text())
+    timings = result["timings"]
+    t = read_recording(recording_dir).events.t
+    assert timings["recording_s"] == pytest.approx(t.max() - t.min(), abs=1e-6)  # rounded
+    assert timings["real_time_factor"] > 0
+    ratio = timings["recording_s"] / timings["total"]
+    assert timings["real_time_factor"] == pytest.approx(ratio, rel=1e-3)
+    line = re.search(
+        r"streamed ([\d.]+) s of recording in ([\d.]+) s: real-time factor ([\d.]+)", res.stdout
+    )
+    assert line is not None, res.stdout
+    logged = [float(v) for v in line.groups()]
+    expected = [timings[k] for k in ("recording_s", "total", "real_time_factor")]
+    assert logged == pytest.approx(expected, abs=0.006)
+    client = MlflowClient(f"sqlite:///{db}")
+    (run,) = client.search_runs([client.get_experiment_by_name("spatialseg").experiment_id])
+    assert run.data.metrics["real_time_factor"] == pytest.approx(timings["real_time_factor"])
+    count = len(result["windows"])
+    assert count >= 2
+    history = [
+        client.get_metric_history(run.info.run_id, f"window{w}/variance") for w in range(count)
+    ]
+    stamps = [points[0].timestamp for points in history]
+    assert stamps == sorted(stamps) and len(set(stamps)) == count  # each as its window ended
 
 
 def test_killed_streamed_run_leaves_no_temporary_files(recording_dir, tmp_path):

@@ -1,8 +1,10 @@
-"""MLflow tracking: a run, a parallel multirun with a failing job, no tracking, no store."""
+"""MLflow tracking: a live run (RUNNING, FINISHED, FAILED, KILLED) with its code version, a
+parallel multirun with a failing job and the sweep's summary, no tracking, no store."""
 
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -10,11 +12,21 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
+import spatialseg as package
 from spatialseg.config import conf_dir
-from spatialseg.tracking import browse_hint
+from spatialseg.tracking import SweepCallback, browse_hint, git_commit
 from tests.test_cli import spatialseg
 
 FAST = ("window.events=3000", "output.plots=false")
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _head() -> str:
+    """The checkout's commit, as git itself names it."""
+    done = subprocess.run(
+        ["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True
+    )
+    return done.stdout.strip()
 
 
 def _runs(db: Path) -> list:
@@ -41,6 +53,14 @@ def test_single_run_is_one_mlflow_run(tmp_path):
     assert res.returncode == 0, res.stderr
     (run,) = _runs(db)
     assert run.info.status == "FINISHED"
+    # opened before the data was made, closed after the outputs: the run's real duration
+    lines = res.stdout.splitlines()
+    opened = next(i for i, line in enumerate(lines) if "MLflow: RUNNING run " in line)
+    assert opened < next(i for i, line in enumerate(lines) if "window 0/3: " in line)
+    seconds = (run.info.end_time - run.info.start_time) / 1000
+    assert seconds >= json.loads((out / "result.json").read_text())["timings"]["total"]
+    assert run.data.tags["spatialseg.version"] == package.__version__
+    assert run.data.tags["mlflow.source.git.commit"] == _head()
     default = OmegaConf.load(conf_dir() / "config.yaml").clustering.evals_per_step
     assert run.data.params["clustering.evals_per_step"] == str(default)
     assert run.data.params["window.events"] == "3000"
@@ -96,6 +116,14 @@ def test_parallel_multirun_has_a_parent_and_a_failed_child(tmp_path):
     failed = next(r for r in children if r.info.status == "FAILED")
     assert "needs a path" in failed.data.tags["error"]
     assert (tmp_path / "sweep" / "0" / "result.json").is_file()
+    finished = next(r for r in children if r.info.status == "FINISHED")
+    summary = parent.data.metrics
+    assert (summary["jobs"], summary["jobs_finished"], summary["jobs_failed"]) == (2, 1, 1)
+    accuracy = finished.data.metrics["accuracy"]
+    assert summary["accuracy_median"] == summary["accuracy_max"] == pytest.approx(accuracy)
+    assert parent.data.tags["best_job"].endswith(f"({finished.info.run_id})")
+    assert parent.data.tags["mlflow.source.git.commit"] == _head()
+    assert f"sweep: 2 jobs, 1 failed; MLflow parent run {parent.info.run_id}; " in res.stdout
 
 
 def test_tracking_none_creates_no_store(tmp_path):
@@ -160,3 +188,120 @@ def test_parent_run_is_failed_when_the_sweep_dies(tmp_path):
     (parent,) = _runs(db)
     assert parent.info.status == "FAILED"
     assert (tmp_path / "sweep" / "mlflow_parent.json").is_file()
+
+
+def test_user_error_ends_the_run_failed(tmp_path):
+    """A mistake found after the run opened: exit 2 with one line, the run FAILED (not
+    missing, not RUNNING) with its params and the error."""
+    db = tmp_path / "mlflow.db"
+    res = spatialseg(
+        "+scene=recording",
+        f"tracking.uri=sqlite:///{db}",
+        f"hydra.run.dir={tmp_path / 'run'}",
+        cwd=tmp_path,
+    )
+    assert res.returncode == 2 and res.stderr.strip().count("\n") == 0, res.stderr
+    (run,) = _runs(db)
+    assert run.info.status == "FAILED"
+    assert "ValueError: scene=recording needs a path" in run.data.tags["error"]
+    assert run.data.params["scene.name"] == "recording"
+    assert f"MLflow: FAILED run {run.info.run_id}; to browse: mlflow ui" in res.stdout
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_signalled_job_is_running_then_killed(tmp_path, signum):
+    """A job is RUNNING in the store, with its params and code version, while it works; a
+    SIGTERM (a scheduler's kill) or Ctrl-C ends it KILLED, in one line."""
+    from mlflow.tracking import MlflowClient
+
+    db = tmp_path / "mlflow.db"
+    args = ("+scene=interior", "output.plots=false", f"tracking.uri=sqlite:///{db}")
+    command = [sys.executable, "-m", "spatialseg", *args, f"hydra.run.dir={tmp_path / 'run'}"]
+    with subprocess.Popen(
+        command,
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # not a shell's SIG_IGN
+    ) as proc:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # the run is open; simulating 45,000 events is ahead
+            if "MLflow: RUNNING run " in line:
+                break
+        run_id = line.split("RUNNING run ")[1].split(";")[0]
+        running = MlflowClient(f"sqlite:///{db}").get_run(run_id)
+        proc.send_signal(signum)
+        stdout, stderr = proc.communicate(timeout=120)
+    assert running.info.status == "RUNNING"
+    assert running.data.params["window.events"] == "15000"
+    assert running.data.tags["mlflow.source.git.commit"] == _head()
+    assert proc.returncode == 128 + signum, stderr
+    how = "terminated" if signum == signal.SIGTERM else "interrupted"
+    assert stderr.strip() == f"error: {how} by {signal.Signals(signum).name}"
+    (run,) = _runs(db)
+    assert run.info.status == "KILLED"
+    assert f"MLflow: KILLED run {run_id}; to browse: mlflow ui" in stdout
+
+
+def test_git_commit_is_the_checkouts_head_or_none(tmp_path):
+    """The package's commit where git tracks it; none outside a checkout or in a repository
+    that does not track the package (a virtualenv inside someone's project)."""
+    assert git_commit() == _head()
+    (tmp_path / "__init__.py").write_text("")
+    assert git_commit(tmp_path) is None
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
+    assert git_commit(tmp_path) is None
+
+
+def test_sweep_parent_holds_the_summary(tmp_path, monkeypatch, capsys):
+    """The parent's metrics: jobs, finished, failed, the jobs' accuracy median/min/max; its
+    best job named; how to open it printed."""
+    from mlflow.tracking import MlflowClient
+
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")  # set by the callback
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_TIMEOUT", "5")
+    db = tmp_path / "mlflow.db"
+    cfg = OmegaConf.create(
+        {
+            "tracking": {
+                "enabled": True,
+                "uri": f"sqlite:///{db}",
+                "experiment": "spatialseg",
+                "http_retries": 0,
+                "http_timeout": 5,
+            },
+            "hydra": {"runtime": {"cwd": str(tmp_path)}, "sweep": {"dir": str(tmp_path / "s")}},
+        }
+    )
+    callback = SweepCallback()
+    callback.on_multirun_start(cfg)
+    parent = json.loads((tmp_path / "s" / "mlflow_parent.json").read_text())["run_id"]
+    client = MlflowClient(f"sqlite:///{db}")
+    experiment = client.get_run(parent).info.experiment_id
+    jobs = tmp_path / "s" / "jobs"
+    jobs.mkdir()
+    for num, accuracy in enumerate([0.6, 0.9, 0.7, None]):
+        tags = {"mlflow.parentRunId": parent}
+        child = client.create_run(experiment, tags=tags, run_name=f"seed={num}").info.run_id
+        if accuracy is not None:
+            client.log_metric(child, "accuracy", accuracy)
+        client.set_terminated(child, "FINISHED" if accuracy is not None else "FAILED")
+        (jobs / f"{num}.{'ok' if accuracy is not None else 'failed'}").write_text("{}")
+    callback.on_multirun_end(cfg)
+    run = client.get_run(parent)
+    assert run.info.status == "FINISHED"
+    assert run.data.metrics == pytest.approx(
+        {
+            "jobs": 4,
+            "jobs_finished": 3,
+            "jobs_failed": 1,
+            "accuracy_median": 0.7,
+            "accuracy_min": 0.6,
+            "accuracy_max": 0.9,
+        }
+    )
+    assert run.data.tags["best_job"].startswith("seed=1 (")
+    assert run.data.tags["spatialseg.version"] == package.__version__
+    hint = f"MLflow parent run {parent}; to browse: mlflow ui --backend-store-uri sqlite:///{db}"
+    assert capsys.readouterr().out.strip() == f"sweep: 4 jobs, 1 failed; {hint}"
