@@ -43,6 +43,7 @@ from spatialseg.checks import boolean_setting, plural
 from spatialseg.config import build_optimizer, conf_dir, validate_run
 
 if TYPE_CHECKING:
+    from spatialseg.pipeline import WindowResult
     from spatialseg.tracking import LiveRun
 
 __all__ = ["guarded", "launch", "main", "run"]
@@ -156,7 +157,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 def _run_tracked(cfg: DictConfig, out_dir: Path, tracked: LiveRun) -> dict[str, Any]:
     """:func:`run`'s work once its MLflow run is open (``tracked``)."""
     from spatialseg.pipeline import check_config, segment_loaded
-    from spatialseg.results import summarise, write_outputs
+    from spatialseg.results import recorded_window_summary, summarise, write_outputs
     from spatialseg.scenes import load_scene
 
     validate_run(cfg)
@@ -175,8 +176,20 @@ def _run_tracked(cfg: DictConfig, out_dir: Path, tracked: LiveRun) -> dict[str, 
     timings = {"load": time.perf_counter() - start}
     optimizer = build_optimizer(cfg)
     begin = time.perf_counter()
+    scored = recording  # its ground truth scores each window as it ends
+
+    def log_window(index: np.ndarray, res: WindowResult) -> None:
+        """Log a window's metrics to the live run as it ends."""
+        summary = recorded_window_summary(scored, index, res)
+        tracked.log_windows([summary], prefixed=len(scored.depth_maps) != 2)  # one window: bare
+
     recording, seg = segment_loaded(
-        recording, plain, optimizer, seed=int(cfg.seed), progress=bool(cfg.output.progress)
+        recording,
+        plain,
+        optimizer,
+        seed=int(cfg.seed),
+        progress=bool(cfg.output.progress),
+        on_window=log_window,
     )
     timings["segment"] = time.perf_counter() - begin
     timings["total"] = time.perf_counter() - start

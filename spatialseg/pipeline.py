@@ -1179,12 +1179,15 @@ def segment_recording(
     handover: Handover | None = None,
     progress: bool = True,
     first_window: int | None = None,
+    on_window: Callable[[np.ndarray, WindowResult], None] | None = None,
 ) -> SegmentationResult:
     """Segment every window (each pair of consecutive depth maps); labels cover all events.
 
     ``progress`` (``output.progress``): an INFO line as each window ends and a DEBUG line
     per iteration (:func:`_window_name` names the window; ``first_window``: in a stream,
     the index of this chunk's first window, as the stream's count is unknown).
+    ``on_window(event_indices, result)`` is called as each window ends, its object ids
+    linked (a live MLflow run logs it).
 
     With ``window.context`` = c > 0 each window is clustered together with up to c
     neighbouring windows on each side (EDPA between each event's own pair of maps) and
@@ -1224,6 +1227,8 @@ def segment_recording(
         edge = boundary(xy[index], labels[index], next_id)
         results.append(res)
         indices.append(index)
+        if on_window is not None:
+            on_window(index, res)
     probabilities = np.zeros((n, max(next_id, 1)), dtype=np.float32)
     for res, index in zip(results, indices, strict=True):
         probabilities[index[:, None], res.ids[None, :]] = res.probabilities
@@ -1329,6 +1334,7 @@ def segment_loaded(
     handover: Handover | None = None,
     progress: bool = True,
     first_window: int | None = None,
+    on_window: Callable[[np.ndarray, WindowResult], None] | None = None,
 ) -> tuple[Recording, SegmentationResult]:
     """A loaded recording through the ``depth`` source and :func:`segment_recording`
     (``handover``: a stream's previous chunk; ``progress``, ``first_window``: its progress
@@ -1355,6 +1361,7 @@ def segment_loaded(
             handover=handover,
             progress=progress,
             first_window=first_window,
+            on_window=on_window,
         )
     return recording, seg
 

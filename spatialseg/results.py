@@ -121,6 +121,17 @@ def window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) ->
     return summary
 
 
+def recorded_window_summary(
+    recording: Recording, index: np.ndarray, res: WindowResult
+) -> dict[str, Any]:
+    """:func:`window_summary` of the window whose events are ``index`` in ``recording``,
+    scored against the recording's ground truth where it has one."""
+    gt = recording.ground_truth
+    if gt is None:
+        return window_summary(res, None, None)
+    return window_summary(res, gt.labels[index], gt.motions)
+
+
 def summarise(
     recording: Recording,
     seg: SegmentationResult,
@@ -128,13 +139,12 @@ def summarise(
     timings: Mapping[str, float],
 ) -> dict[str, Any]:
     """The content of ``result.json``: the whole run, each window below in ``windows``."""
-    gt = recording.ground_truth
-    windows = []
-    for res, index in zip(seg.windows, seg.indices, strict=True):
-        truth = gt.labels[index] if gt is not None else None
-        windows.append(window_summary(res, truth, gt.motions if gt is not None else None))
+    windows = [
+        recorded_window_summary(recording, index, res)
+        for res, index in zip(seg.windows, seg.indices, strict=True)
+    ]
     summary = run_summary(recording.name, len(recording.events), cfg, windows, timings)
-    if gt is not None:
+    if recording.ground_truth is not None:
         summary["metrics"] = _aggregate_metrics(windows)
     return summary
 

@@ -141,12 +141,16 @@ def _stage_times(windows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
 
 
 def _window_finals(window: Mapping[str, Any], prefix: str) -> Iterator[tuple[str, float]]:
-    """``(key, value)`` of one window's final contrast per object, iterations, convergence."""
+    """``(key, value)`` of one window's final contrast per object, iterations, convergence
+    and, with ground truth, accuracy."""
     yield f"{prefix}variance", _contrast(window)
     for c in window["clusters"]:
         yield f"{prefix}variance_object{c['id']}", c["variance"]
     yield f"{prefix}iterations", window["iterations"]
     yield f"{prefix}converged", float(window["converged"])
+    accuracy = window.get("metrics", {}).get("accuracy")
+    if accuracy is not None:
+        yield f"{prefix}accuracy", accuracy
 
 
 def _window_metrics(
@@ -296,13 +300,14 @@ class LiveRun:
         if self._send(lambda client: _log_config(client, self.run_id, cfg)):
             self._say("RUNNING")
 
-    def log_windows(self, windows: Sequence[Mapping[str, Any]]) -> None:
-        """Log windows as they end (a stream's chunk), each under ``window<i>/``."""
+    def log_windows(self, windows: Sequence[Mapping[str, Any]], *, prefixed: bool = True) -> None:
+        """Log windows as they end (a stream's chunk, a recording's window), each under
+        ``window<i>/`` (the curves of a recording's only window: unprefixed)."""
         first, self._windows = self._windows, self._windows + len(windows)
         points = [
             point
             for i, window in enumerate(windows, start=first)
-            for point in _window_metrics(window, i, prefixed=True)
+            for point in _window_metrics(window, i, prefixed=prefixed)
         ]
         self._send(lambda client: _log_metrics(client, self.run_id, points))
 

@@ -86,6 +86,14 @@ def test_single_run_is_one_mlflow_run(tmp_path):
         assert [m.step for m in history] == list(range(1, len(history) + 1))
         thetas = client.get_metric_history(run.info.run_id, f"window{i}/iter/theta1_z")
         assert len(thetas) == len(history)
+    # each window's metrics, its accuracy too, were logged as the window ended
+    stamps = [
+        client.get_metric_history(run.info.run_id, f"window{i}/variance")[0].timestamp
+        for i in range(len(windows))
+    ]
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(windows)
+    for i, window in enumerate(windows):
+        assert metrics[f"window{i}/accuracy"] == pytest.approx(window["metrics"]["accuracy"])
     artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
     assert {"result.json", "labels.npy", "config.yaml"} <= artifacts
     end = res.stdout.strip().splitlines()[-2:]  # the run directory, then how to open the run
