@@ -27,6 +27,7 @@ import os
 import shlex
 import statistics
 import subprocess
+import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -37,6 +38,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
+
+from spatialseg import sweeps
 
 __all__ = [
     "LiveRun",
@@ -429,15 +432,7 @@ def _tally(sweep_dir: Path, parent_run_id: str) -> SweepTally:
 def _children(client: Any, parent_run_id: str) -> list[Any]:
     """The MLflow runs of a sweep's jobs (every page of the search)."""
     experiment = client.get_run(parent_run_id).info.experiment_id
-    query = f"tags.mlflow.parentRunId = '{parent_run_id}'"
-    runs: list[Any] = []
-    token = None
-    while True:
-        page = client.search_runs([experiment], query, page_token=token)
-        runs += page
-        token = page.token
-        if not token:
-            return runs
+    return sweeps.search_all(client, experiment, f"tags.mlflow.parentRunId = '{parent_run_id}'")
 
 
 def _sweep_metrics(tally: SweepTally, children: Sequence[Any]) -> dict[str, float]:
@@ -521,6 +516,22 @@ class SweepCallback(Callback):
             tags["best_job"] = best
         for key, value in tags.items():
             self._client.set_tag(self._run_id, key, value)
+        try:
+            self._log_summary_files(tally, children)
+        except Exception as exc:  # the table and plot are extras: never fail the sweep
+            first = (str(exc).strip().splitlines() or [""])[0][:300]
+            log.warning(
+                "tracking: sweep summary files not logged (%s: %s)", type(exc).__name__, first
+            )
+
+    def _log_summary_files(self, tally: SweepTally, children: Sequence[Any]) -> None:
+        """Log ``sweep_summary.md``, ``.csv`` and ``.png`` (:func:`sweeps.write_summary`)."""
+        if not children:
+            return
+        title = f"sweep {self._run_id}: {tally.total} jobs, {tally.failed} failed"
+        with tempfile.TemporaryDirectory() as folder:
+            for path in sweeps.write_summary(Path(folder), children, title):
+                self._client.log_artifact(self._run_id, str(path))
 
     def _close(self, status: str) -> None:
         """Terminate the parent run with ``status``, warning if the store is gone."""

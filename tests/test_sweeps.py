@@ -144,6 +144,29 @@ def test_report_matches_the_store(sweep, capsys):
     assert "| optimizers.SSAGradientAscent | interior | 0 | 2 | 0 | 2 | - | - | - |" in out
 
 
+def test_sweep_parent_holds_the_summary_files(sweep, tmp_path):
+    """The parent's ``sweep_summary.md/.csv/.png``: a row per swept n_clusters and seed."""
+    root, _ = sweep
+    parent = json.loads((root / "sweep" / "mlflow_parent.json").read_text())["run_id"]
+    client = _client(root / "mlflow.db")
+    sizes = {a.path: a.file_size for a in client.list_artifacts(parent)}
+    assert {"sweep_summary.md", "sweep_summary.csv", "sweep_summary.png"} <= set(sizes)
+    assert sizes["sweep_summary.png"] > 0
+    table = Path(client.download_artifacts(parent, "sweep_summary.md", str(tmp_path))).read_text()
+    assert "| n_clusters | seed | runs | finished | failed | accuracy median [IQR] |" in table
+    for seed in ("0", "1"):
+        assert f"| 0 | {seed} | 1 | 0 | 1 | - |" in table
+        assert f"| 2 | {seed} | 1 | 1 | 0 | " in table
+    with open(client.download_artifacts(parent, "sweep_summary.csv", str(tmp_path))) as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["n_clusters"], r["seed"], r["runs"]) for r in rows] == [
+        ("0", "0", "1"),
+        ("0", "1", "1"),
+        ("2", "0", "1"),
+        ("2", "1", "1"),
+    ]
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [

@@ -3,6 +3,7 @@ parallel multirun with a failing job and the sweep's summary, no tracking, no st
 
 from __future__ import annotations
 
+import csv
 import json
 import signal
 import subprocess
@@ -262,9 +263,9 @@ def test_git_commit_is_the_checkouts_head_or_none(tmp_path):
     assert git_commit(tmp_path) is None
 
 
-def test_sweep_parent_holds_the_summary(tmp_path, monkeypatch, capsys):
-    """The parent's metrics: jobs, finished, failed, the jobs' accuracy median/min/max; its
-    best job named; how to open it printed."""
+def _fake_sweep(tmp_path, monkeypatch, jobs: list[tuple[str, float | None]]):
+    """A parent run opened by the callback over hand-made jobs ``(overrides, accuracy)``
+    (accuracy None: a failed job), each with its outcome file; (callback, cfg, client, id)."""
     from mlflow.tracking import MlflowClient
 
     monkeypatch.setenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")  # set by the callback
@@ -287,15 +288,29 @@ def test_sweep_parent_holds_the_summary(tmp_path, monkeypatch, capsys):
     parent = json.loads((tmp_path / "s" / "mlflow_parent.json").read_text())["run_id"]
     client = MlflowClient(f"sqlite:///{db}")
     experiment = client.get_run(parent).info.experiment_id
-    jobs = tmp_path / "s" / "jobs"
-    jobs.mkdir()
-    for num, accuracy in enumerate([0.6, 0.9, 0.7, None]):
-        tags = {"mlflow.parentRunId": parent}
+    folder = tmp_path / "s" / "jobs"
+    folder.mkdir()
+    for num, (chosen, accuracy) in enumerate(jobs):
+        tags = {"mlflow.parentRunId": parent, "spatialseg.overrides": chosen}
         child = client.create_run(experiment, tags=tags, run_name=f"seed={num}").info.run_id
         if accuracy is not None:
             client.log_metric(child, "accuracy", accuracy)
         client.set_terminated(child, "FINISHED" if accuracy is not None else "FAILED")
-        (jobs / f"{num}.{'ok' if accuracy is not None else 'failed'}").write_text("{}")
+        (folder / f"{num}.{'ok' if accuracy is not None else 'failed'}").write_text("{}")
+    return callback, cfg, client, parent
+
+
+def test_sweep_parent_holds_the_summary(tmp_path, monkeypatch, capsys):
+    """The parent's metrics: jobs, finished, failed, the jobs' accuracy median/min/max; its
+    best job named; how to open it printed; the table, CSV and plot of accuracy against the
+    swept override (``optimizer``; ``+scene`` is the same in every job) as artifacts."""
+    jobs = [
+        (f"+scene=interior optimizer={optimizer} seed={num}", accuracy)
+        for num, (optimizer, accuracy) in enumerate(
+            [("pso", 0.6), ("ssa_ga", 0.9), ("pso", 0.7), ("ssa_ga", None)]
+        )
+    ]
+    callback, cfg, client, parent = _fake_sweep(tmp_path, monkeypatch, jobs)
     callback.on_multirun_end(cfg)
     run = client.get_run(parent)
     assert run.info.status == "FINISHED"
@@ -311,5 +326,52 @@ def test_sweep_parent_holds_the_summary(tmp_path, monkeypatch, capsys):
     )
     assert run.data.tags["best_job"].startswith("seed=1 (")
     assert run.data.tags["spatialseg.version"] == package.__version__
+    db = tmp_path / "mlflow.db"
     hint = f"MLflow parent run {parent}; to browse: mlflow ui --backend-store-uri sqlite:///{db}"
     assert capsys.readouterr().out.strip() == f"sweep: 4 jobs, 1 failed; {hint}"
+
+    names = {a.path: a.file_size for a in client.list_artifacts(parent)}
+    assert set(names) == {"sweep_summary.md", "sweep_summary.csv", "sweep_summary.png"}
+    assert names["sweep_summary.png"] > 0
+    table = Path(client.download_artifacts(parent, "sweep_summary.md", str(tmp_path))).read_text()
+    # seed varies too: one row per job, each its own group
+    assert "| optimizer | seed | runs | finished | failed | accuracy median [IQR] |" in table
+    assert "| ssa_ga | 3 | 1 | 0 | 1 | - |" in table
+
+
+def test_sweep_summary_groups_jobs_by_the_swept_value(tmp_path, monkeypatch):
+    """One row per swept value with its run counts; a summary that fails only warns."""
+    jobs = [
+        ("+scene=interior optimizer=pso", 0.6),
+        ("+scene=interior optimizer=ssa_ga", 0.9),
+        ("+scene=interior optimizer=pso", 0.7),
+        ("+scene=interior optimizer=ssa_ga", None),
+    ]
+    callback, cfg, client, parent = _fake_sweep(tmp_path, monkeypatch, jobs)
+    callback.on_multirun_end(cfg)
+    path = client.download_artifacts(parent, "sweep_summary.csv", str(tmp_path))
+    with open(path) as f:
+        rows = {row["optimizer"]: row for row in csv.DictReader(f)}
+    assert set(rows) == {"pso", "ssa_ga"}
+    counts = {k: (r["runs"], r["finished"], r["failed"]) for k, r in rows.items()}
+    assert counts == {"pso": ("2", "2", "0"), "ssa_ga": ("2", "1", "1")}
+    assert float(rows["pso"]["accuracy_median"]) == pytest.approx(0.65)
+
+
+def test_a_failing_sweep_summary_only_warns(tmp_path, monkeypatch, caplog):
+    """No varying override: one ``all`` row; a plot that fails: one warning, parent FINISHED."""
+    from spatialseg import sweeps
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no display\nmore")
+
+    monkeypatch.setattr(sweeps, "write_plot", broken)
+    jobs = [("+scene=interior", 0.6), ("+scene=interior", 0.8)]
+    callback, cfg, client, parent = _fake_sweep(tmp_path, monkeypatch, jobs)
+    with caplog.at_level("WARNING", logger="spatialseg"):
+        callback.on_multirun_end(cfg)
+    assert client.get_run(parent).info.status == "FINISHED"
+    assert [r.getMessage() for r in caplog.records if r.levelname == "WARNING"] == [
+        "tracking: sweep summary files not logged (RuntimeError: no display)"
+    ]
+    assert client.list_artifacts(parent) == []  # written into a folder, logged only if all made
