@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import hydra
 import numpy as np
@@ -41,6 +41,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from spatialseg.checks import boolean_setting, plural
 from spatialseg.config import build_optimizer, conf_dir, validate_run
+from spatialseg.interrupts import interruption
 
 if TYPE_CHECKING:
     from spatialseg.pipeline import WindowResult
@@ -323,6 +324,12 @@ def _exit_on_sigterm() -> Iterator[None]:
             signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
+def _exit_interrupted() -> NoReturn:
+    """End a run stopped by Ctrl-C in one line, exit status 128 + SIGINT."""
+    print("error: interrupted by SIGINT", file=sys.stderr)
+    raise SystemExit(128 + signal.SIGINT) from None
+
+
 def guarded(task: Callable[[DictConfig], object]) -> Callable[[DictConfig], None]:
     """Wrap a Hydra task so a user mistake ends in one ``error:`` line and exit status 2,
     Ctrl-C in one line and exit status 130.
@@ -341,11 +348,15 @@ def guarded(task: Callable[[DictConfig], object]) -> Callable[[DictConfig], None
         except KeyboardInterrupt:
             if os.environ.get("SPATIALSEG_DEBUG"):
                 raise
-            print("error: interrupted by SIGINT", file=sys.stderr)
-            raise SystemExit(128 + signal.SIGINT) from None
+            _exit_interrupted()
         except Exception as exc:
             if os.environ.get("SPATIALSEG_DEBUG"):
                 raise
+            stop = interruption(exc)  # a signal's exception that a library's clean-up replaced
+            if isinstance(stop, SystemExit):
+                raise SystemExit(stop.code) from None  # SIGTERM's handler printed its line
+            if stop is not None:
+                _exit_interrupted()
             if HydraConfig.get().mode == RunMode.MULTIRUN:
                 _fail_job(exc)
                 return

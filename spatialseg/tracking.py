@@ -40,6 +40,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from spatialseg import sweeps
+from spatialseg.interrupts import interruption
 
 __all__ = [
     "LiveRun",
@@ -376,7 +377,7 @@ def live_run(cfg: DictConfig) -> Iterator[LiveRun]:
         run.start(cfg)
         yield run
     except Exception as exc:
-        run.end("FAILED", exc)
+        run.end("FAILED" if interruption(exc) is None else "KILLED", exc)
         raise
     except BaseException:
         run.end("KILLED")
