@@ -1246,16 +1246,13 @@ class WindowTask:
     optimizer: Any
     seed: int
 
-    def __call__(self) -> tuple[WindowResult, float]:
-        """The window segmented, and the seconds it took."""
-        start = time.perf_counter()
-        result = segment_window(self.span, self.cfg, self.optimizer, seed=self.seed)
-        return result, time.perf_counter() - start
-
 
 def _run_task(task: WindowTask) -> tuple[WindowResult, float]:
-    """Run one window's task (a module-level function, so a process pool can pickle it)."""
-    return task()
+    """The task's window segmented, and the seconds it took (a module-level function, so a
+    process pool can pickle it)."""
+    start = time.perf_counter()
+    result = segment_window(task.span, task.cfg, task.optimizer, seed=task.seed)
+    return result, time.perf_counter() - start
 
 
 def _segmented_windows(

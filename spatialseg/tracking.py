@@ -2,15 +2,15 @@
 
 A job's run opens when the job starts (:func:`live_run`), so a long job shows as RUNNING
 with its composed config (flattened params and ``config.yaml``) and its code version (tags
-``spatialseg.version`` and, in a git checkout, ``mlflow.source.git.commit``). A streamed run
-logs each window's metrics as the window ends; a run from memory logs them at its end, with
-the per-iteration curves as stepped metrics, the whole run's metrics and its output files.
-The run ends FINISHED, FAILED on an error (its message as the tag ``error``) or KILLED on
-SIGTERM or Ctrl-C. The outputs are on disk before they are sent, and a tracking failure
-only logs one warning line: tracking never loses a result. In a multirun,
-:class:`SweepCallback` creates the store, the experiment and a parent run before the jobs
-start and writes the parent's id to ``mlflow_parent.json`` in the sweep directory, where
-each job finds it; after the jobs it logs the sweep's summary to the parent.
+``spatialseg.version`` and, in a git checkout, ``mlflow.source.git.commit``). Each window's
+metrics, its per-iteration curves as stepped metrics, are logged as the window ends; the
+whole run's metrics and its output files at its end. The run ends FINISHED, FAILED on an
+error (its message as the tag ``error``) or KILLED on SIGTERM or Ctrl-C. The outputs are on
+disk before they are sent, and a tracking failure only logs one warning line: tracking
+never loses a result. In a multirun, :class:`SweepCallback` creates the store, the
+experiment and a parent run before the jobs start and writes the parent's id to
+``mlflow_parent.json`` in the sweep directory, where each job finds it; after the jobs it
+logs the sweep's summary to the parent.
 
 Each multirun job also leaves its outcome as a file in ``<sweep dir>/jobs/`` (tracking on or
 off, any launcher: joblib and Submitit jobs run in other processes); after the sweep,
@@ -371,7 +371,8 @@ class LiveRun:
 def live_run(cfg: DictConfig) -> Iterator[LiveRun]:
     """This job's MLflow run over the block: FINISHED when it ends, FAILED on an exception,
     KILLED on SIGTERM or Ctrl-C (the :class:`SystemExit` the command line's SIGTERM handler
-    raises, Python's :class:`KeyboardInterrupt`)."""
+    raises, Python's :class:`KeyboardInterrupt`, or an exception raised while unwinding
+    from either: :func:`spatialseg.interrupts.interruption`)."""
     run = LiveRun()
     try:
         run.start(cfg)
