@@ -23,10 +23,8 @@ import logging
 import os
 import signal
 import sys
-import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping, Sequence
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
@@ -41,7 +39,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from spatialseg.checks import boolean_setting, plural
 from spatialseg.config import build_optimizer, conf_dir, validate_run
-from spatialseg.interrupts import interruption
+from spatialseg.interrupts import interruption, raise_pending, stop_on_signals
 
 if TYPE_CHECKING:
     from spatialseg.pipeline import WindowResult
@@ -183,6 +181,7 @@ def _run_tracked(cfg: DictConfig, out_dir: Path, tracked: LiveRun) -> dict[str, 
         """Log a window's metrics to the live run as it ends."""
         summary = recorded_window_summary(scored, index, res)
         tracked.log_windows([summary], prefixed=len(scored.depth_maps) != 2)  # one window: bare
+        raise_pending()
 
     recording, seg = segment_loaded(
         recording,
@@ -266,6 +265,7 @@ def run_stream(
             ended = [window_summary(res, None, None) for res in seg.windows]
             tracked.log_windows(ended)
             windows += ended
+            raise_pending()
         if not windows:
             raise ValueError(f"{cfg.scene.path or cfg.scene.name}: the file has no events")
         wall = time.perf_counter() - start
@@ -299,31 +299,6 @@ def _fail_job(exc: Exception) -> None:
         log.error("job failed", exc_info=exc)
 
 
-def _terminate(signum: int, frame: object) -> None:
-    """SIGTERM's handler: end the run by unwinding (exit status 128 + 15), so ``finally``
-    blocks and atomic writes remove their temporary files; a second SIGTERM ends it at once."""
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    print(f"error: terminated by {signal.Signals(signum).name}", file=sys.stderr)
-    raise SystemExit(128 + signum)
-
-
-@contextmanager
-def _exit_on_sigterm() -> Iterator[None]:
-    """While a task runs, SIGTERM raises :class:`SystemExit` instead of ending the process
-    mid-write (the default); a handler a launcher installed (Submitit's) is left alone."""
-    install = (
-        threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
-    )
-    if install:
-        signal.signal(signal.SIGTERM, _terminate)
-    try:
-        yield
-    finally:
-        if install:
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
 def _exit_interrupted() -> NoReturn:
     """End a run stopped by Ctrl-C in one line, exit status 128 + SIGINT."""
     print("error: interrupted by SIGINT", file=sys.stderr)
@@ -342,8 +317,9 @@ def guarded(task: Callable[[DictConfig], object]) -> Callable[[DictConfig], None
         from spatialseg.tracking import mark_job
 
         try:
-            with _exit_on_sigterm():
+            with stop_on_signals():
                 task(cfg)
+                raise_pending()
             mark_job(None)
         except KeyboardInterrupt:
             if os.environ.get("SPATIALSEG_DEBUG"):

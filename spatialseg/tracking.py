@@ -40,7 +40,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from spatialseg import sweeps
-from spatialseg.interrupts import interruption
+from spatialseg.interrupts import interruption, raise_pending
 
 __all__ = [
     "LiveRun",
@@ -377,6 +377,7 @@ def live_run(cfg: DictConfig) -> Iterator[LiveRun]:
     try:
         run.start(cfg)
         yield run
+        raise_pending()  # a stop that a library swallowed on the way ends the run KILLED
     except Exception as exc:
         run.end("FAILED" if interruption(exc) is None else "KILLED", exc)
         raise
