@@ -40,6 +40,7 @@ from omegaconf import DictConfig, OmegaConf
 from spatialseg.checks import boolean_setting, plural
 from spatialseg.config import build_optimizer, conf_dir, validate_run
 from spatialseg.interrupts import interruption, raise_pending, stop_on_signals
+from spatialseg.progress import progress_bar
 
 if TYPE_CHECKING:
     from spatialseg.pipeline import WindowResult
@@ -240,6 +241,7 @@ def run_stream(
         ArrayStream(labels_path, np.int64) as labels,
         ProbabilityStream(probabilities_path) as probabilities,
         SegmentationH5(h5_path) if cfg.output.h5 else contextlib.nullcontext() as h5,
+        progress_bar(None, "window", enabled=bool(cfg.output.progress)) as bar,
     ):
         optimizer, windows, handover = build_optimizer(cfg), [], None
         span = (np.inf, -np.inf)  # the first and last event times seen
@@ -265,6 +267,7 @@ def run_stream(
             ended = [window_summary(res, None, None) for res in seg.windows]
             tracked.log_windows(ended)
             windows += ended
+            bar(len(ended))
             raise_pending()
         if not windows:
             raise ValueError(f"{cfg.scene.path or cfg.scene.name}: the file has no events")

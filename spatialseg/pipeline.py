@@ -45,6 +45,7 @@ from spatialseg.executors import check_parallel, map_in_order
 from spatialseg.grid import VoxelGrid, grid_around, project_jacobian
 from spatialseg.identities import Boundary, boundary, link_clusters
 from spatialseg.objectives import make_objective
+from spatialseg.progress import progress_bar
 from spatialseg.recording import (
     Camera,
     Recording,
@@ -1272,7 +1273,8 @@ def _segmented_windows(
     one after the other, each handed the one before's velocities (the ``previous`` start),
     or with ``window.parallel`` on workers that see no other window
     (:mod:`spatialseg.executors`; every span is then made up front). With ``progress``, an
-    INFO line as each ends (``first_window`` not None: a stream's chunk, count unknown)."""
+    INFO line as each ends (``first_window`` not None: a stream's chunk, count unknown) and,
+    on a terminal, a bar over two windows or more (:mod:`spatialseg.progress`)."""
     engine, workers = check_parallel(cfg["window"]["parallel"], cfg["window"]["workers"])
     seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=max(count, 1))
     total = count if first_window is None else None
@@ -1288,10 +1290,12 @@ def _segmented_windows(
         ]
         runs = map_in_order(_run_task, tasks, engine=engine, workers=workers)
         done = ((window, *run) for window, run in zip(spans, runs, strict=True))
-    for name, ((index, span, inner), res, seconds) in zip(names, done, strict=True):
-        if progress:
-            _log_window(name, len(index), len(span.events), res, seconds)
-        yield index, inner, res
+    with progress_bar(count, "window", enabled=progress and total is not None and count > 1) as bar:
+        for name, ((index, span, inner), res, seconds) in zip(names, done, strict=True):
+            if progress:
+                _log_window(name, len(index), len(span.events), res, seconds)
+            bar(1)
+            yield index, inner, res
 
 
 def _serial_windows(

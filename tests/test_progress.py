@@ -1,5 +1,6 @@
-"""Progress lines (issue 28, item 5): a DEBUG line per iteration naming its window and start,
-an INFO line per window as it ends, and the numba kernels' first compilation announced."""
+"""Progress (issue 28, item 5): a DEBUG line per iteration naming its window and start, an
+INFO line per window as it ends, on a terminal a bar over the windows and over a sweep's jobs,
+and the numba kernels' first compilation announced."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import os
 import subprocess
 import sys
 import textwrap
+from io import StringIO
 from pathlib import Path
 
 import pytest
@@ -15,6 +17,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import optimizers
+from spatialseg import progress, sweep_progress
 from spatialseg.compilation import cache_is_cold, compile_seconds, index_paths
 from spatialseg.config import conf_dir
 from spatialseg.pipeline import segment_recording
@@ -78,6 +81,88 @@ def test_a_stream_names_its_windows_from_first_window_without_a_count(two_window
     segment_recording(rec, cfg, optimizers.create("ssa_ga"), seed=0, first_window=5)
     ends = [m for m in _messages(caplog, logging.INFO) if m.startswith("window ")]
     assert [m.split(":")[0] for m in ends] == ["window 5", "window 6"]
+
+
+class Terminal(StringIO):
+    """A stream that says it is a terminal."""
+
+    def isatty(self) -> bool:
+        return True
+
+
+def _terminal(monkeypatch) -> Terminal:
+    """stderr as a terminal, bars drawn into it (set in the test's body: pytest's capture
+    sets sys.stderr again between a fixture and the test)."""
+    stream = Terminal()
+    monkeypatch.setattr(sys, "stderr", stream)
+    monkeypatch.delenv("TERM", raising=False)
+    return stream
+
+
+def test_a_bar_only_on_a_terminal(monkeypatch):
+    terminal = _terminal(monkeypatch)
+    with progress.progress_bar(3, "window") as update:
+        update(2)
+    assert "2/3" in terminal.getvalue()
+    off, log = Terminal(), StringIO()
+    with progress.progress_bar(3, "window", enabled=False, stream=off) as update:
+        update(1)
+    with progress.progress_bar(3, "window", stream=log) as update:
+        update(1)
+    assert off.getvalue() == log.getvalue() == ""
+
+
+def test_windows_get_a_bar_on_a_terminal_and_their_lines_above_it(two_windows, monkeypatch, caplog):
+    cfg, rec = two_windows
+    terminal = _terminal(monkeypatch)
+    caplog.set_level(logging.INFO, logger="spatialseg")
+    segment_recording(rec, cfg, optimizers.create("ssa_ga"), seed=0)
+    drawn = terminal.getvalue()
+    assert "0/2" in drawn and "2/2" in drawn and "window" in drawn
+    assert len([m for m in _messages(caplog, logging.INFO) if m.startswith("window ")]) == 2
+    terminal.truncate(0)
+    segment_recording(rec, cfg, optimizers.create("ssa_ga"), seed=0, progress=False)
+    assert terminal.getvalue() == ""
+
+
+def _sweep_config(*sweep: str, **hydra: str):
+    """The composed config of a multirun over ``sweep`` (``hydra``: its hydra.* settings)."""
+    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
+        cfg = compose(
+            "config",
+            overrides=[f"hydra.{k}={v}" for k, v in hydra.items()],
+            return_hydra_config=True,
+        )
+    cfg.hydra.overrides.task = list(sweep)
+    return cfg
+
+
+def test_the_sweep_size_is_the_basic_sweepers_job_count():
+    assert sweep_progress.sweep_size(_sweep_config("n_clusters=2,3", "seed=range(0,3)")) == 6
+    assert sweep_progress.sweep_size(_sweep_config("seed=0")) == 1
+    other = _sweep_config("n_clusters=2,3", **{"sweeper._target_": "somewhere.Else"})
+    assert sweep_progress.sweep_size(other) is None
+
+
+def test_a_sweep_in_this_process_gets_a_bar_over_its_jobs(monkeypatch):
+    terminal = _terminal(monkeypatch)
+    config = _sweep_config("n_clusters=2,3")
+    bar = sweep_progress.SweepProgress()
+    bar.on_multirun_start(config)
+    for _ in range(2):
+        bar.on_job_start(config)
+        logging.getLogger("spatialseg").warning("a job's line")
+        bar.on_job_end(config, None)
+    bar.on_multirun_end(config)
+    drawn = terminal.getvalue()
+    assert "2/2" in drawn and "job" in drawn
+    elsewhere = _sweep_config("n_clusters=2,3", **{"launcher._target_": "somewhere.Else"})
+    terminal.truncate(0)
+    bar = sweep_progress.SweepProgress()
+    bar.on_multirun_start(elsewhere)
+    bar.on_job_end(elsewhere, None)
+    bar.on_multirun_end(elsewhere)
+    assert terminal.getvalue() == ""
 
 
 def test_figure_count_is_what_save_result_figures_draws(two_windows, tmp_path):
