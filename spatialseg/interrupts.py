@@ -22,10 +22,17 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-__all__ = ["interruption", "raise_pending", "stop_on_signals"]
+__all__ = ["interruption", "raise_pending", "stop_on_signals", "stopped"]
 
 #: The stop a signal handler raised in this process and no checkpoint has re-raised yet.
 _pending: BaseException | None = None
+#: Whether a stop signal was handled in this process (a sweep's parent run ends KILLED).
+_stopped = False
+
+
+def stopped() -> bool:
+    """Whether SIGTERM or Ctrl-C stopped a task in this process."""
+    return _stopped
 
 
 def interruption(exc: BaseException) -> BaseException | None:
@@ -52,17 +59,17 @@ def raise_pending() -> None:
 def _terminate(signum: int, frame: object) -> None:
     """SIGTERM's handler: record the stop and unwind (exit status 128 + 15); a second SIGTERM
     ends the process at once."""
-    global _pending
+    global _pending, _stopped
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     print(f"error: terminated by {signal.Signals(signum).name}", file=sys.stderr)
-    _pending = SystemExit(128 + signum)
+    _pending, _stopped = SystemExit(128 + signum), True
     raise SystemExit(128 + signum)
 
 
 def _interrupt(signum: int, frame: object) -> None:
     """Ctrl-C's handler: record the stop and raise :class:`KeyboardInterrupt`, as Python's does."""
-    global _pending
-    _pending = KeyboardInterrupt()
+    global _pending, _stopped
+    _pending, _stopped = KeyboardInterrupt(), True
     raise KeyboardInterrupt
 
 

@@ -40,7 +40,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from spatialseg import sweeps
-from spatialseg.interrupts import interruption, raise_pending
+from spatialseg.interrupts import interruption, raise_pending, stopped
 
 __all__ = [
     "LiveRun",
@@ -491,7 +491,7 @@ class SweepCallback(Callback):
         self._client, self._run_id = client, run.info.run_id
         sweep_dir.mkdir(parents=True, exist_ok=True)
         (sweep_dir / PARENT_FILE).write_text(json.dumps({"run_id": self._run_id}))
-        atexit.register(self._close, "FAILED")
+        atexit.register(self._close_at_exit)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Count the failed jobs (for the exit status); log the summary, finish the parent."""
@@ -499,7 +499,7 @@ class SweepCallback(Callback):
         _last_sweep = _tally(Path(str(config.hydra.sweep.dir)), self._run_id)
         if not self._run_id:
             return
-        atexit.unregister(self._close)
+        atexit.unregister(self._close_at_exit)
         try:
             self._summarise(_last_sweep)
         except Exception as exc:
@@ -535,6 +535,10 @@ class SweepCallback(Callback):
         with tempfile.TemporaryDirectory() as folder:
             for path in sweeps.write_summary(Path(folder), children, title):
                 self._client.log_artifact(self._run_id, str(path))
+
+    def _close_at_exit(self) -> None:
+        """The sweep died before its end: KILLED by SIGTERM or Ctrl-C, else FAILED."""
+        self._close("KILLED" if stopped() else "FAILED")
 
     def _close(self, status: str) -> None:
         """Terminate the parent run with ``status``, warning if the store is gone."""

@@ -185,17 +185,32 @@ cfg = OmegaConf.create({{
     "hydra": {{"runtime": {{"cwd": "{cwd}"}}, "sweep": {{"dir": "{cwd}/sweep"}}}},
 }})
 SweepCallback().on_multirun_start(cfg)
-raise SystemExit("sweep died")
+{death}
 """
+#: How the sweep's process dies: an error, or a scheduler's SIGTERM during a job.
+DEATHS = {
+    "FAILED": 'raise SystemExit("sweep died")',
+    "KILLED": (
+        "import os, signal, time\n"
+        "from spatialseg.interrupts import stop_on_signals\n"
+        "with stop_on_signals():\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    time.sleep(30)"
+    ),
+}
 
 
-def test_parent_run_is_failed_when_the_sweep_dies(tmp_path):
+@pytest.mark.parametrize("status", ["FAILED", "KILLED"])
+def test_parent_run_is_failed_or_killed_when_the_sweep_dies(tmp_path, status):
     db = tmp_path / "mlflow.db"
-    code = SWEEP_DIES.format(db=db, cwd=tmp_path)
+    code = SWEEP_DIES.format(db=db, cwd=tmp_path, death=DEATHS[status])
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert res.returncode == 1 and "sweep died" in res.stderr
+    if status == "FAILED":
+        assert res.returncode == 1 and "sweep died" in res.stderr
+    else:
+        assert res.returncode == 143 and "terminated by SIGTERM" in res.stderr
     (parent,) = _runs(db)
-    assert parent.info.status == "FAILED"
+    assert parent.info.status == status
     assert (tmp_path / "sweep" / "mlflow_parent.json").is_file()
 
 
