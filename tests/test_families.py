@@ -3,6 +3,7 @@ consistent with the drawn motions."""
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import asdict
 
@@ -43,15 +44,23 @@ def _image_velocity(scene: dict, body: dict, t: float) -> np.ndarray:
     return focal * (v[:2] - p[:2] / p[2] * v[2]) / p[2]
 
 
-def _middle_render(scene: dict):
-    """The scene rendered at the middle of its duration."""
+@functools.cache
+def _drawn(family: str, seed: int):
+    """``draw_scene(family, seed)``, drawn once per test module (a draw renders frames)."""
+    return draw_scene(family, seed)
+
+
+@functools.cache
+def _middle_render(family: str, seed: int):
+    """The drawn scene rendered at the middle of its duration, once per test module."""
+    scene = _drawn(family, seed).scene
     parsed = parse_scene(scene)
     return Renderer(parsed, texture_keys(parsed, 0)).render(scene["duration"] / 2)
 
 
 @pytest.mark.parametrize("family", list(FAMILIES))
 def test_a_draw_is_deterministic_per_seed_and_differs_between_seeds(family):
-    first, again, other = draw_scene(family, 3), draw_scene(family, 3), draw_scene(family, 4)
+    first, again, other = _drawn(family, 3), draw_scene(family, 3), _drawn(family, 4)
     assert first.scene == again.scene and first.modifiers == again.modifiers
     assert first.windows == again.windows and first.time_offset == again.time_offset
     assert first.scene != other.scene
@@ -60,12 +69,12 @@ def test_a_draw_is_deterministic_per_seed_and_differs_between_seeds(family):
 @pytest.mark.parametrize("family", list(FAMILIES))
 def test_every_draw_is_a_valid_scene_with_visible_motions_and_modifiers_in_range(family):
     for seed in SEEDS:
-        drawn = draw_scene(family, seed)
+        drawn = _drawn(family, seed)
         cam = drawn.scene["camera"]
         assert (cam["width"], cam["height"]) in SENSORS
         for name, value in asdict(drawn.modifiers).items():
             assert 0 <= value <= MODIFIER_LIMITS[name]
-        frame = _middle_render(drawn.scene)
+        frame = _middle_render(family, seed)
         for k in range(1, len(drawn.scene["objects"]) + 1):
             assert np.count_nonzero(frame.label == k) >= 20, (seed, k)
         velocities = _relative(drawn.scene)
@@ -77,14 +86,14 @@ def test_every_draw_is_a_valid_scene_with_visible_motions_and_modifiers_in_range
 
 def test_opposite_directions_differ_by_more_than_90_degrees():
     for seed in SEEDS:
-        scene = draw_scene("opposite", seed).scene
+        scene = _drawn("opposite", seed).scene
         a, b = (_image_velocity(scene, o, scene["duration"] / 2) for o in scene["objects"])
         assert a @ b / (np.linalg.norm(a) * np.linalg.norm(b)) < 0
 
 
 def test_same_direction_objects_share_a_direction_at_different_speeds_and_depths():
     for seed in SEEDS:
-        scene = draw_scene("same_direction", seed).scene
+        scene = _drawn("same_direction", seed).scene
         assert len(scene["objects"]) in (2, 3)
         flows = [_image_velocity(scene, o, 0.0) for o in scene["objects"]]
         speeds = sorted(np.linalg.norm(f) for f in flows)
@@ -100,7 +109,7 @@ def test_same_direction_objects_share_a_direction_at_different_speeds_and_depths
 
 def test_equal_motion_objects_share_one_velocity_at_different_depths():
     for seed in SEEDS:
-        drawn = draw_scene("equal_motion", seed)
+        drawn = _drawn("equal_motion", seed)
         velocities = _relative(drawn.scene)
         shared = [o for o, v in zip(drawn.scene["objects"], velocities, strict=True)
                   if np.allclose(v, velocities[0])]  # fmt: skip
@@ -111,14 +120,14 @@ def test_equal_motion_objects_share_one_velocity_at_different_depths():
 
 def test_looming_has_one_object_moving_mostly_along_the_optical_axis():
     for seed in SEEDS:
-        velocities = _relative(draw_scene("looming", seed).scene)
+        velocities = _relative(_drawn("looming", seed).scene)
         along = [v for v in velocities if abs(v[2]) > 2 * np.linalg.norm(v[:2])]
         assert len(along) == 1 and len(velocities) in (2, 3)
 
 
 def test_many_has_three_or_four_motions_whose_paths_cross():
     for seed in SEEDS:
-        drawn = draw_scene("many", seed)
+        drawn = _drawn("many", seed)
         assert drawn.n_motions in (3, 4)
         assert _any_overlap(drawn.scene), seed
 
@@ -147,9 +156,9 @@ def _any_overlap(scene: dict) -> bool:
 def test_moving_camera_families_spread_the_static_scene_over_depth():
     for family in ("ego_sideways", "ego_forward"):
         for seed in SEEDS:
-            drawn = draw_scene(family, seed)
+            drawn = _drawn(family, seed)
             assert np.linalg.norm(drawn.scene["camera"]["ego_velocity"]) >= 0.5
-            frame = _middle_render(drawn.scene)
+            frame = _middle_render(family, seed)
             depth = frame.depth[frame.label == 0]
             low, high = np.percentile(depth, [5, 95])
             assert low < 5.0 < high and high / low >= 1.7, (family, seed, low, high)
@@ -157,7 +166,7 @@ def test_moving_camera_families_spread_the_static_scene_over_depth():
 
 def test_long_is_one_window_of_many_events_with_a_clock_that_does_not_start_at_zero():
     for seed in SEEDS:
-        drawn = draw_scene("long", seed)
+        drawn = _drawn("long", seed)
         assert drawn.windows == 1 and drawn.time_offset >= 1.0
         assert drawn.scene["camera"]["width"] >= 640
 
