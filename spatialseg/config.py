@@ -1,4 +1,10 @@
-"""Locating ``conf/`` and validating a composed configuration against the config files.
+"""Locating ``conf/``, registering the method's defaults with Hydra, and validating a
+composed configuration against the config files.
+
+The method's settings have their defaults in code (:mod:`spatialseg.settings`);
+importing this module stores them in Hydra's ConfigStore (:func:`register_defaults`) as
+``spatialseg_defaults``, the first entry of ``conf/config.yaml``'s defaults list, so the YAML
+files only select and override.
 
 Hydra accepts ``+anything=value`` and silently adds the key, so a misspelt ``+scnee=interior``
 would run without a scene. :func:`validate_config` compares every key of the composed config
@@ -18,10 +24,13 @@ from typing import Any
 
 import hydra
 from hydra import compose, initialize_config_dir
+from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from spatialseg.settings import SECTIONS, default_tree
 
 __all__ = [
     "ConfigError",
@@ -31,6 +40,7 @@ __all__ = [
     "conf_dir",
     "config_roots",
     "group_options",
+    "register_defaults",
     "simulated_scenes",
     "validate_config",
     "validate_run",
@@ -38,6 +48,15 @@ __all__ = [
 
 #: Hydra's own and launcher keys that never appear in our YAML files.
 _HYDRA_KEYS = {"hydra"}
+
+#: The name ``conf/config.yaml``'s defaults list gives the method's defaults.
+BASE_CONFIG = "spatialseg_defaults"
+
+
+def register_defaults() -> None:
+    """Store the method's defaults (:func:`spatialseg.settings.default_tree`) in Hydra's
+    ConfigStore as :data:`BASE_CONFIG`, before Hydra composes ``conf/config.yaml``."""
+    ConfigStore.instance().store(name=BASE_CONFIG, node=default_tree())
 
 
 class ConfigError(ValueError):
@@ -187,9 +206,11 @@ def validate_config(
     in groups whose options declare ``_open_: true`` (free-form sections).
     """
     roots = roots or config_roots()
-    reference = OmegaConf.to_container(_load(roots, primary), resolve=False)
-    assert isinstance(reference, dict)
-    reference.pop("defaults", None)
+    own = OmegaConf.to_container(_load(roots, primary), resolve=False)
+    assert isinstance(own, dict)
+    own.pop("defaults", None)
+    base = default_tree()
+    reference = {**base, **own}
     groups = _groups(roots)
     for group in groups:
         if group != "hydra":
@@ -216,6 +237,8 @@ def validate_config(
             if option is None:
                 continue
             option_ref = _load(roots, f"{key}/{option}.yaml")
+            if key in SECTIONS:  # the option overrides the method's section defaults
+                option_ref = OmegaConf.merge(base[str(key)], option_ref)
             if isinstance(option_ref, DictConfig) and not option_ref.get("_open_", False):
                 _check_keys(value, option_ref, str(key))
         else:
@@ -227,3 +250,6 @@ def validate_run(cfg: DictConfig, primary: str = "config.yaml") -> None:
     path holds (a user's own ``--config-dir`` scene is as valid as a shipped one)."""
     runtime = HydraConfig.get().runtime
     validate_config(cfg, runtime.choices, primary, config_roots(runtime.config_sources))
+
+
+register_defaults()  # last: the defaults' checks look optimiser presets up with check_option
