@@ -64,7 +64,7 @@ import numpy as np
 from _common import compose_config, positive_count, split_overrides, write_json
 from omegaconf import OmegaConf
 
-from spatialseg import pipeline, read
+from spatialseg import points, read
 from spatialseg.config import conf_dir, group_options, simulated_scenes
 from spatialseg.depth import with_configured_depth
 from spatialseg.recording import Recording
@@ -221,15 +221,15 @@ def pass_seconds(
     numba.set_num_threads(1)
     total, events = 0.0, 0
     reach = float(cfg["clustering"]["max_displacement"])
-    cap = pipeline.depth_change_cap(cfg["clustering"])
+    cap = points.depth_change_cap(cfg["clustering"])
     try:
         for _, window, _ in recording.spans(0):
-            prepared = pipeline.prepare(window, cfg)
-            t_ref = pipeline.reference_time(prepared.t, cfg["volume"]["t_ref"])
-            volume = pipeline.window_objective(prepared, t_ref, cfg).inner
+            prepared = points.prepare(window, cfg)
+            t_ref = points.reference_time(prepared.t, cfg["volume"]["t_ref"])
+            volume = points.window_objective(prepared, t_ref, cfg).inner
             volume.set_weights(np.ones(volume.n_events))
-            bounds = pipeline.search_bounds(prepared, reach, cap)
-            theta = pipeline.spatial_velocities(0.5 * bounds[None, :, 1])[0]
+            bounds = points.search_bounds(prepared, reach, cap)
+            theta = points.spatial_velocities(0.5 * bounds[None, :, 1])[0]
             volume.value_and_grad(theta)
             times = []
             for _ in range(calls):

@@ -6,7 +6,7 @@
 Events are synthetic but shaped like the pipeline's input for a 346 x 260 sensor (the
 interior scene's camera): two carts' worth of events on boxes 0.93 m away plus events on the
 table at 1 m and uniform noise, over a 0.13 s window; the grids are built exactly as
-``pipeline.prepare`` builds them (``edpa.voxel_size`` + ``grid_around``, xy_scale 2, 16
+``points.prepare`` builds them (``edpa.voxel_size`` + ``grid_around``, xy_scale 2, 16
 depth bins, margin 0.1), once metric (``volume.coordinates=metric``) and once over pixels and
 inverse depth (``image``, the default). For each size N, grid and dtype it measures
 
@@ -127,7 +127,7 @@ def make_events(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def build_grid(points: np.ndarray, kind: str) -> VoxelGrid:
-    """The grid ``pipeline.prepare`` builds for these points with the default config."""
+    """The grid ``points.prepare`` builds for these points with the default config."""
     cam = camera()
     size = voxel_size(points, cam, xy_scale=2.0, z_bins=16, coordinates=kind)
     projection = np.array([cam.fx, cam.fy, cam.cx, cam.cy]) if kind == "image" else None

@@ -28,7 +28,7 @@ from _common import (
 )
 from scipy.optimize import minimize
 
-from spatialseg.pipeline import ModelEvaluator, prepare, reference_time, window_objective
+from spatialseg.points import ModelEvaluator, prepare, reference_time, window_objective
 from spatialseg.scenes import load_scene
 from spatialseg.simulate.render import STATIC_SCENE
 

@@ -44,7 +44,8 @@ from hydra.utils import instantiate
 
 from spatialseg.io import read_any, write_recording
 from spatialseg.metrics import recording_metrics
-from spatialseg.pipeline import check_config, segment_loaded, spatial_velocities
+from spatialseg.pipeline import segment_loaded
+from spatialseg.points import spatial_velocities
 from spatialseg.recording import Recording
 from spatialseg.simulate.families import (
     FAMILIES,
@@ -53,6 +54,7 @@ from spatialseg.simulate.families import (
     draw_scene,
     simulate_family,
 )
+from spatialseg.window import check_config
 
 #: First seed of each split: dev draws 0-999, heldout 1000 and above.
 SPLITS = {"dev": 0, "heldout": 1000}

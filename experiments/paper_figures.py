@@ -10,7 +10,7 @@ each scene is an ordinary MLflow run under one sweep parent (default store
 ``sqlite:///mlflow.db`` in the working directory, ``--tracking none`` for no store) with its
 outputs in ``--runs-dir/<job>``. Then, per scene, the figure is rebuilt from that run's
 ``labels.npy`` and ``result.json``; the warped volumes are recomputed from the window's
-points (``pipeline.prepare``, deterministic) and the run's final thetas, and the grid shape
+points (``points.prepare``, deterministic) and the run's final thetas, and the grid shape
 is checked against the run's. Panels: (a) the window's first keyframe (an event image if
 the window has none) and (b) its depth map in metres (unknown depth blank), as in the
 paper's Fig. 6a/7a, (c) events by cluster, (d)-(e) the volume warped by each cluster's
@@ -33,8 +33,8 @@ from omegaconf import OmegaConf
 
 from spatialseg.depth import with_configured_depth
 from spatialseg.figures import paper_figure, save_figure, warped_images
-from spatialseg.pipeline import prepare
 from spatialseg.plots import cluster_image, event_image
+from spatialseg.points import prepare
 from spatialseg.scenes import load_scene
 from spatialseg.tracking import JOBS_DIR, PARENT_FILE, tracking_uri
 

@@ -59,15 +59,15 @@ from matplotlib.figure import Figure
 
 from spatialseg.clustering import initial_memberships
 from spatialseg.objectives import make_objective
-from spatialseg.pipeline import (
+from spatialseg.points import (
     ModelEvaluator,
     depth_change_cap,
-    initialise,
     prepare,
     reference_time,
     search_bounds,
 )
 from spatialseg.scenes import load_scene
+from spatialseg.starts import initialise
 from spatialseg.volume import VolumeObjective
 
 OPTIMIZERS = [

@@ -39,9 +39,9 @@ from spatialseg.config import (
     simulated_scenes,
 )
 from spatialseg.depth import make_depth_source
-from spatialseg.pipeline import WindowResult
 from spatialseg.recording import Camera, Recording
 from spatialseg.simulate import simulator
+from spatialseg.window import WindowResult, check_config
 
 __all__ = ["MotionSegmenter", "Segmentation", "read", "segment", "simulate", "write"]
 
@@ -243,7 +243,7 @@ def _configure(
     n_clusters: int | str, seed: int, optimizer: Any, settings: Mapping[str, Any]
 ) -> tuple[dict[str, Any], Any]:
     """The run config and the optimiser for :func:`segment`'s arguments, every value
-    checked before any work (the command line's checks: :func:`pipeline.check_config`,
+    checked before any work (the command line's checks: :func:`spatialseg.window.check_config`,
     the depth source, the optimiser's hyperparameters)."""
     integer_setting(seed, "seed", 0)
     flat = _flatten(settings)
@@ -259,7 +259,7 @@ def _configure(
             )
         _assign(sections, key, value, known_only=True)
     cfg.update(sections, n_clusters=n_clusters, seed=seed)
-    pipeline.check_config(cfg)
+    check_config(cfg)
     make_depth_source(cfg["depth"])
     if name is None:
         cfg["optimizer"] = {"_target_": f"{type(optimizer).__module__}.{type(optimizer).__name__}"}

@@ -43,8 +43,8 @@ from spatialseg.interrupts import interruption, raise_pending, stop_on_signals
 from spatialseg.progress import progress_bar
 
 if TYPE_CHECKING:
-    from spatialseg.pipeline import WindowResult
     from spatialseg.tracking import LiveRun
+    from spatialseg.window import WindowResult
 
 __all__ = ["guarded", "launch", "main", "run"]
 
@@ -156,9 +156,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 def _run_tracked(cfg: DictConfig, out_dir: Path, tracked: LiveRun) -> dict[str, Any]:
     """:func:`run`'s work once its MLflow run is open (``tracked``)."""
-    from spatialseg.pipeline import check_config, segment_loaded
+    from spatialseg.pipeline import segment_loaded
     from spatialseg.results import recorded_window_summary, summarise, write_outputs
     from spatialseg.scenes import load_scene
+    from spatialseg.window import check_config
 
     validate_run(cfg)
     plain = OmegaConf.to_container(cfg, resolve=True)

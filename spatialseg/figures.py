@@ -2,7 +2,7 @@
 
 A run directory holds the labels and ``result.json`` (final thetas, reference time and the
 per-iteration history) but not the warped volumes; those are recomputed from the window's
-points (``pipeline.prepare``, deterministic) and the final thetas, so the figure shows
+points (``points.prepare``, deterministic) and the final thetas, so the figure shows
 exactly the run that MLflow recorded. Panels, as in the paper: (a) the window's first
 keyframe and (b) its depth map (the paper's Fig. 6a/7a), (c) events by object, (d)-(e) the
 volume warped by each cluster's motion summed over depth (that cluster's object sharp, the
@@ -22,8 +22,8 @@ import matplotlib as mpl
 import numpy as np
 from matplotlib.figure import Figure
 
-from spatialseg.pipeline import Prepared
 from spatialseg.plots import object_colours, object_legend
+from spatialseg.points import Prepared
 from spatialseg.recording import DepthMap
 from spatialseg.volume import VolumeObjective
 

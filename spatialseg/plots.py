@@ -21,7 +21,8 @@ from spatialseg.io._atomic import atomic_file
 from spatialseg.recording import Recording
 
 if TYPE_CHECKING:
-    from spatialseg.pipeline import SegmentationResult, WindowResult
+    from spatialseg.pipeline import SegmentationResult
+    from spatialseg.window import WindowResult
 
 __all__ = [
     "cluster_image",

@@ -25,9 +25,11 @@ import numpy as np
 
 from spatialseg.io._atomic import atomic_file
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.pipeline import SegmentationResult, WindowResult, spatial_velocities
+from spatialseg.pipeline import SegmentationResult
+from spatialseg.points import spatial_velocities
 from spatialseg.recording import Recording
 from spatialseg.segmentation_h5 import write_segmentation_h5
+from spatialseg.window import WindowResult
 
 __all__ = [
     "DATA_FILES",

@@ -21,9 +21,10 @@ from spatialseg.clustering import (
 from spatialseg.config import conf_dir
 from spatialseg.grid import grid_around
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.pipeline import ModelEvaluator, segment_window
+from spatialseg.points import ModelEvaluator
 from spatialseg.scenes import load_scene
 from spatialseg.volume import VolumeObjective
+from spatialseg.window import segment_window
 
 
 def test_update_memberships_normalises_and_guards_zero_rows():
@@ -186,7 +187,8 @@ def test_coarse_to_fine_theta_step():
     """clustering.coarse: the optimiser on a coarser grid and fewer events, then the
     refinement at full resolution; both budgets are spent every iteration, and the window
     is still segmented."""
-    from spatialseg.pipeline import _step_stages, prepare, reference_time, window_objective
+    from spatialseg.points import prepare, reference_time, window_objective
+    from spatialseg.window import _step_stages
 
     overrides = ["+scene=interior", "clustering.coarse.stride=2", "clustering.coarse.events=1000"]
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):

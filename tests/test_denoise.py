@@ -8,8 +8,9 @@ import pytest
 import optimizers
 from spatialseg.denoise import denoise_mask
 from spatialseg.events import EventStream
-from spatialseg.pipeline import prepare, segment_window
+from spatialseg.points import prepare
 from spatialseg.recording import Camera, DepthMap, Recording
+from spatialseg.window import segment_window
 from tests.test_pipeline import _config
 
 WIDTH, HEIGHT = 64, 48

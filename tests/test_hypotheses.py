@@ -12,9 +12,11 @@ from spatialseg.config import conf_dir
 from spatialseg.grid import grid_around
 from spatialseg.hypotheses import Tiles, greedy_cover, image_tiles, tile_motions
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.pipeline import ModelEvaluator, named_optimizer, segment_window
+from spatialseg.points import ModelEvaluator
 from spatialseg.scenes import load_scene
+from spatialseg.starts import named_optimizer
 from spatialseg.volume import VolumeObjective
+from spatialseg.window import segment_window
 
 from .test_clustering import _two_motion_cloud
 

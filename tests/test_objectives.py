@@ -16,6 +16,7 @@ from spatialseg.objectives import (
     register_objective,
     volume_moments,
 )
+from spatialseg.settings import settings_from
 
 
 def _volume(seed: int = 0, shape=(7, 6, 5)) -> np.ndarray:
@@ -106,6 +107,7 @@ def test_every_objective_has_a_config_and_every_config_an_objective():
     assert set(group_options("objective")) == set(objective_names())
     for name in objective_names():
         cfg = OmegaConf.load(conf_dir() / "objective" / f"{name}.yaml")
-        assert cfg.name == name
-        objective = make_objective(**cfg)
-        assert objective.blur_sigma == cfg.blur_sigma
+        assert cfg.name == name  # the option selects; the settings hold the defaults
+        section = settings_from({"objective": OmegaConf.to_container(cfg)}).objective
+        objective = make_objective(name=section.name, blur_sigma=section.blur_sigma)
+        assert objective.name == name and objective.blur_sigma == section.blur_sigma == 0.0

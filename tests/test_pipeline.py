@@ -12,22 +12,19 @@ from omegaconf import OmegaConf
 import optimizers
 from spatialseg.config import conf_dir
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.pipeline import (
-    SegmentationResult,
-    check_config,
+from spatialseg.pipeline import SegmentationResult, segment_recording
+from spatialseg.points import (
     p_step_sigmas,
     prepare,
-    previous_init,
-    prior_weights,
     reference_time,
     search_bounds,
-    segment_recording,
-    segment_window,
     window_objective,
 )
 from spatialseg.recording import DepthMap
 from spatialseg.scenes import load_scene
+from spatialseg.starts import previous_init
 from spatialseg.volume import VolumeObjective
+from spatialseg.window import check_config, prior_weights, segment_window
 
 
 def _config(*overrides: str, scene: str = "interior") -> dict:
@@ -189,7 +186,7 @@ def test_defaults_separate_a_walking_camera_from_a_person_crossing():
 def test_a_window_alone_takes_the_p_step_alone_smoothing(monkeypatch):
     """A window clustered with neighbours gets clustering.p_step_sigma and p_step_stride; one
     clustered alone (window.context=0) gets clustering.p_step_alone's."""
-    import spatialseg.pipeline as pipeline
+    import spatialseg.window as window
 
     seen = []
 
@@ -197,8 +194,8 @@ def test_a_window_alone_takes_the_p_step_alone_smoothing(monkeypatch):
         seen.append((p_step_sigma, p_step_stride))
         return real(*args, p_step_sigma=p_step_sigma, p_step_stride=p_step_stride, **kwargs)
 
-    real = pipeline.iterative_clustering
-    monkeypatch.setattr(pipeline, "iterative_clustering", spy)
+    real = window.iterative_clustering
+    monkeypatch.setattr(window, "iterative_clustering", spy)
     overrides = ["init.method=image_flow", "clustering.max_iterations=1"]
     for context in (1, 0):
         cfg = _config(f"window.context={context}", *overrides)
@@ -243,7 +240,7 @@ def test_the_depth_change_cap_bounds_vz_by_the_median_depth_not_by_outliers():
     stretch the depth extent and so the box's vz; the cap limits |vz| to that share of the
     median depth per window, and leaves the box as it was where it is already narrower."""
     from spatialseg.grid import grid_around
-    from spatialseg.pipeline import Prepared
+    from spatialseg.points import Prepared
 
     rng = np.random.default_rng(0)
     points = np.column_stack([rng.uniform(-1, 1, (1000, 2)), rng.uniform(2.0, 4.0, 1000)])
@@ -287,7 +284,7 @@ def test_moving_camera_static_scene_is_one_motion():
 def test_events_on_occlusion_edges_do_not_steer_the_velocities():
     """clustering.step_edges=false: the theta-step's events are all off the edges (the
     approaching box passes in front of the wall)."""
-    from spatialseg.pipeline import _step_subset
+    from spatialseg.window import _step_subset
 
     cfg = _config("clustering.step_edges=false", scene="approach")
     _, window = next(load_scene(cfg["scene"], seed=0, window_events=4000).windows())
@@ -472,7 +469,8 @@ def test_refit_measures_velocities_off_the_occlusion_edges():
     leaves the result as it was."""
     from spatialseg.clustering import ClusteringResult, IterationRecord
     from spatialseg.grid import grid_around
-    from spatialseg.pipeline import Prepared, refit_velocities
+    from spatialseg.points import Prepared
+    from spatialseg.window import refit_velocities
 
     rng = np.random.default_rng(0)
     n, true, wrong = 3000, np.array([1.0, 0.0, 0.0]), np.array([1.3, 0.2, 0.0])
@@ -518,7 +516,6 @@ def test_relabelling_is_one_p_step_at_the_final_velocities(interior):
     memberships, and the velocities are the same either way. This window is clustered
     alone, so clustering.p_step_alone.relabel_sigma is the one that counts."""
     from spatialseg.clustering import p_step
-    from spatialseg.pipeline import window_objective
 
     cfg, rec = interior
     _, window = next(rec.windows())
@@ -615,7 +612,7 @@ def test_edpa_edge_radius_reaches_the_lifted_points_of_edge_events_only():
 
 
 def test_spatial_velocities_pads_a_planar_model_with_zero_vz():
-    from spatialseg.pipeline import spatial_velocities
+    from spatialseg.points import spatial_velocities
 
     planar = np.array([[1.0, 2.0], [3.0, 4.0]])
     np.testing.assert_array_equal(spatial_velocities(planar), [[1, 2, 0], [3, 4, 0]])

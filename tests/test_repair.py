@@ -7,8 +7,8 @@ import numpy as np
 
 import optimizers
 from spatialseg.clustering import Repair, weak_cluster, worst_explained
-from spatialseg.pipeline import segment_window
 from spatialseg.scenes import load_scene
+from spatialseg.window import segment_window
 from tests.test_pipeline import _config
 
 

@@ -15,7 +15,6 @@ import spatialseg
 from spatialseg.depth import with_configured_depth
 from spatialseg.events import EventStream
 from spatialseg.io import read_recording, write_recording
-from spatialseg.pipeline import check_events_per_cluster
 from spatialseg.recording import (
     MILLIMETRES_FIX,
     Camera,
@@ -25,6 +24,7 @@ from spatialseg.recording import (
     check_event_times,
 )
 from spatialseg.scenes import load_scene
+from spatialseg.window import check_events_per_cluster
 from tests.test_cli import spatialseg as run_cli
 
 W, H = 32, 24

@@ -1,0 +1,366 @@
+"""The model stage for one window: its events as points in the model's space, and the volume.
+
+Recording window in; :class:`Prepared` out (points M x 3 in metres, or pixels for the planar
+model, their times, the voxel grid, the events kept aside), then the search box (dim x 2),
+the warp's reference time and :class:`ModelEvaluator`, one cluster's contrast of the volume.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from spatialseg import edpa
+from spatialseg.checks import boolean_setting, is_integer, optional_positive
+from spatialseg.denoise import denoise_mask
+from spatialseg.grid import VoxelGrid, grid_around
+from spatialseg.objectives import make_objective
+from spatialseg.recording import Camera, Recording
+from spatialseg.volume import VolumeObjective, check_p_step_blur
+
+__all__ = [
+    "ModelEvaluator",
+    "Prepared",
+    "depth_change_cap",
+    "fit_support",
+    "off_edge_events",
+    "p_step_settings",
+    "p_step_sigmas",
+    "planar_points",
+    "prepare",
+    "reference_time",
+    "relabel_sigmas",
+    "search_bounds",
+    "spatial_velocities",
+    "volume_grid",
+    "window_objective",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    """A window's events as points in the model's space, ready for the volume.
+
+    ``points`` (M x 3) are the usable events (``valid`` marks them among the window's N);
+    ``dim`` is the number of velocity components the model estimates (3 spatial, 2 planar).
+    ``search_extent`` (3,) is the extent the search box is measured on (:func:`search_bounds`);
+    None means the grid's. ``on_edge`` (M,) marks points whose depth came from an occlusion
+    edge (:func:`spatialseg.edpa.occlusion_edges`); None: no such points. ``rest``: the
+    points, times and mask (N,) of the events with depth left out of the fit (noise, sparse
+    depth bands), labelled from the fitted motions at the end; None: none.
+    """
+
+    points: np.ndarray
+    t: np.ndarray
+    valid: np.ndarray
+    grid: VoxelGrid
+    dim: int
+    units: str
+    search_extent: np.ndarray | None = None
+    on_edge: np.ndarray | None = None
+    rest: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    @property
+    def labelled(self) -> np.ndarray:
+        """The window's events that get a label (N,): the fitted ones and the ``rest``."""
+        return self.valid if self.rest is None else self.valid | self.rest[2]
+
+
+def prepare(window: Recording, cfg: Mapping[str, Any]) -> Prepared:
+    """Lift the window's events into the model's space and build the voxel grid around the
+    events the motions are fitted on (:func:`fit_support`);
+    the other events with depth are kept aside (``Prepared.rest``) and labelled at the end."""
+    model, vol = cfg["model"], cfg["volume"]
+    if len(window.events) == 0:
+        raise ValueError(f"{window.name}: the window has no events; choose a longer window")
+    support = fit_support(window, cfg)
+    if model["name"] == "planar":
+        return planar_points(window, float(model["xy_scale"]), support)
+    lifted = edpa.lift(
+        window,
+        unknown_depth=cfg["edpa"]["unknown_depth"],
+        fill_radius=int(cfg["edpa"]["fill_radius"]),
+        edge_ratio=cfg["edpa"]["edge_ratio"],
+        edge_radius=cfg["edpa"]["edge_radius"],
+    )
+    supported = support[lifted.valid]
+    dense = edpa.dense_depth_bands(
+        lifted.points[supported, 2], gap=float(vol["depth_gap"]), min_share=vol["min_band_share"]
+    )
+    fit = np.zeros(len(supported), dtype=bool)
+    fit[np.flatnonzero(supported)[dense]] = True
+    if not fit.any():
+        fit[:] = True  # nothing supported: fit on every event with depth
+    points = lifted.points[fit]
+    grid = volume_grid(points, window.camera, cfg)
+    valid = lifted.valid.copy()
+    valid[np.flatnonzero(valid)[~fit]] = False
+    rest_valid = lifted.valid & ~valid
+    extent = _search_extent(lifted.points[supported], grid, float(vol["margin"]))
+    on_edge = lifted.on_edge[lifted.valid][fit]
+    rest = (lifted.points[~fit], lifted.t[~fit], rest_valid)
+    return Prepared(points, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
+
+
+def fit_support(window: Recording, cfg: Mapping[str, Any]) -> np.ndarray:
+    """The window's events the motions are fitted on (N,): with ``denoise.enabled``, those
+    the background-activity filter supports (:func:`spatialseg.denoise.denoise_mask`), else
+    all. The others are labelled at the end from the fitted motions.
+
+    Decision: an isolated noise event carries no motion but, lifted to the depth behind
+    it, stretches the grid and blurs every volume; 4.6 % of noise turned a three-object
+    scene from 1.0 to 0.73. Dropping such events (the filter's usual use) loses the signal
+    events it rejects too; leaving them out of the fit alone keeps their labels."""
+    den = cfg["denoise"]
+    support = np.ones(len(window.events), dtype=bool)
+    if boolean_setting(den["enabled"], "denoise.enabled"):
+        support = denoise_mask(window.events, radius=den["radius"], window=den["window"])
+        support |= not support.any()  # a window rejected whole (a few events): fit them all
+    return support
+
+
+def planar_points(
+    window: Recording, xy_scale: float, support: np.ndarray | None = None
+) -> Prepared:
+    """Image-plane embedding (Stoffregen et al. 2019): points (x, y, 0) in pixels, no depth;
+    the ``support``ed events (default all) are fitted, the others kept aside."""
+    ev = window.events
+    every = np.column_stack([ev.x, ev.y, np.zeros(len(ev))]).astype(np.float64)
+    fit = np.ones(len(ev), dtype=bool) if support is None else support  # fit_support: never empty
+    points = every[fit]
+    lo = points.min(axis=0) - np.array([2 * xy_scale, 2 * xy_scale, 0.0])
+    hi = points.max(axis=0) + np.array([2 * xy_scale, 2 * xy_scale, 0.0])
+    shape = (*(np.ceil((hi[:2] - lo[:2]) / xy_scale).astype(int) + 1), 1)
+    grid = VoxelGrid(origin=lo, voxel_size=np.array([xy_scale, xy_scale, 1.0]), shape=shape)
+    rest = (every[~fit], ev.t[~fit], ~fit)
+    return Prepared(points, ev.t[fit], fit.copy(), grid, 2, "px/s", rest=rest)
+
+
+def volume_grid(
+    points: np.ndarray, camera: Camera, cfg: Mapping[str, Any], coordinates: str | None = None
+) -> VoxelGrid:
+    """The spatial model's voxel grid around ``points`` in ``volume.coordinates`` (or
+    ``coordinates``): ``image`` (pixels and inverse depth, default) or ``metric`` (metres).
+
+    Decision: on an image grid a voxel has the same footprint in the image at every depth,
+    so near and far events are equally sharp when compensated, and an object moving in
+    depth is sharpened by its expansion in the image, resolved to a pixel, instead of by
+    its few depth bins only (``docs/volume.md`` has the measurements).
+    """
+    vol = cfg["volume"]
+    coordinates = coordinates or str(vol["coordinates"])
+    size = edpa.voxel_size(
+        points,
+        camera,
+        xy_scale=float(cfg["model"]["xy_scale"]),
+        z_bins=int(vol["z_bins"]),
+        coordinates=coordinates,
+    )
+    projection = None
+    if coordinates == "image":
+        projection = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+    return grid_around(points, size, float(vol["margin"]), int(vol["max_voxels"]), projection)
+
+
+def _search_extent(all_points: np.ndarray, grid: VoxelGrid, margin: float) -> np.ndarray:
+    """Per axis (metres), the larger of a metric grid's extent and all lifted points' extent
+    (``margin`` added).
+
+    Decision: events left out of the grid (sparse depth bands) still count for the search
+    box, so trimming the grid makes the voxels finer without narrowing the velocities the
+    optimiser may try. Otherwise ``approach``'s grid, trimmed to 0.9 m deep, would cap vz
+    at 1.1 m/s, below the approaching box's 2.5 m/s. An image grid is not in metres, so
+    there only the points count.
+    """
+    span = (1 + 2 * margin) * (all_points.max(axis=0) - all_points.min(axis=0))
+    if grid.projection is not None:
+        return span
+    return np.maximum(np.asarray(grid.shape, float) * grid.voxel_size, span)
+
+
+def search_bounds(
+    prepared: Prepared, max_displacement: float, max_depth_change: float | None = None
+) -> np.ndarray:
+    """Velocity box: a motion may move a point at most ``max_displacement`` times the grid's
+    extent (``prepared.search_extent`` when set) along each axis over the window (dim x 2,
+    centred on zero); with ``max_depth_change`` (spatial model) ``|vz|`` is also capped so a
+    motion changes the points' median depth by at most that share over the window.
+
+    Decision: the depth cap is a time to contact of at least ``1 / max_depth_change``
+    windows. Without it a few far outliers in the depth maps stretch the depth extent (to
+    hundreds of metres on ``road_cars``) and the box admits velocities that push half the
+    window's events far away and pull the other half close: event collapse, which the
+    variance rewards (docs/method.md, "Event collapse").
+    """
+    if prepared.search_extent is not None:
+        extent = np.asarray(prepared.search_extent, float)
+    else:
+        extent = np.asarray(prepared.grid.shape, float) * prepared.grid.voxel_size
+    duration = max(float(prepared.t.max() - prepared.t.min()), 1e-9)
+    half = max_displacement * extent[: prepared.dim] / duration
+    if max_depth_change is not None and prepared.dim == 3:
+        depth = float(np.median(prepared.points[:, 2]))
+        half[2] = min(half[2], max_depth_change * depth / duration)
+    return np.column_stack([-half, half])
+
+
+def depth_change_cap(ccfg: Mapping[str, Any]) -> float | None:
+    """``clustering.max_depth_change``, validated: a positive number, or None for no cap."""
+    return optional_positive(ccfg["max_depth_change"], "clustering.max_depth_change")
+
+
+def reference_time(t: np.ndarray, mode: str) -> float:
+    """The warp's reference time: the window's start or its middle."""
+    if mode == "start":
+        return float(t.min())
+    if mode == "middle":
+        return float(0.5 * (t.min() + t.max()))
+    raise ValueError(f"volume.t_ref must be 'start' or 'middle', got {mode!r}")
+
+
+def spatial_velocities(thetas: np.ndarray) -> np.ndarray:
+    """Velocities of a model's components (K x 2 planar, K x 3 spatial) as K x 3, the
+    missing vz zero: the form the volume and the results take."""
+    thetas = np.asarray(thetas, dtype=np.float64)
+    full = np.zeros((len(thetas), 3))
+    full[:, : thetas.shape[1]] = thetas
+    return full
+
+
+def off_edge_events(prepared: Prepared, k: int) -> np.ndarray:
+    """Indices of the points off occlusion edges (their depth is reliable), or of every point
+    when fewer than ``k`` are off them (or no edges are marked), so each cluster has events."""
+    if prepared.on_edge is not None and np.count_nonzero(~prepared.on_edge) >= k:
+        return np.flatnonzero(~prepared.on_edge)
+    return np.arange(prepared.points.shape[0])
+
+
+class ModelEvaluator:
+    """A cluster's volume objective seen through the model's velocity components.
+
+    The volume kernels always warp in 3-D; the planar model estimates only (vx, vy), so its
+    velocity is padded with zeros and the gradient truncated.
+    """
+
+    def __init__(self, volume: VolumeObjective, dim: int) -> None:
+        self.inner, self.dim = volume, dim
+
+    @property
+    def n_events(self) -> int:
+        """Number of events in the volume."""
+        return self.inner.n_events
+
+    def _full(self, theta: np.ndarray) -> np.ndarray:
+        full = np.zeros(3)
+        full[: self.dim] = theta
+        return full
+
+    def set_weights(self, weights: np.ndarray) -> None:
+        """Memberships of the cluster being optimised."""
+        self.inner.set_weights(weights)
+
+    def value(self, theta: np.ndarray) -> float:
+        """Contrast of the volume warped by ``theta``."""
+        return self.inner.value(self._full(theta))
+
+    def grad(self, theta: np.ndarray) -> np.ndarray:
+        """Analytic gradient of the contrast with respect to the model's components."""
+        return self.inner.grad(self._full(theta))[: self.dim]
+
+    def batch_value(self, thetas: np.ndarray) -> np.ndarray:
+        """Contrast of many candidate velocities (n x dim) in one parallel call."""
+        return self.inner.batch_value(spatial_velocities(thetas))
+
+    def volume(self, theta: np.ndarray) -> np.ndarray:
+        """The volume of warped events for ``theta``."""
+        return self.inner.volume(self._full(theta))
+
+    def p_step(
+        self, theta: np.ndarray, sigma: float | Sequence[float], stride: int = 1
+    ) -> tuple[np.ndarray, float]:
+        """The volume for ``theta``, smoothed by ``sigma`` voxels (one number, or x, y,
+        depth), at each warped event, and the contrast of the volume (the P-step)."""
+        return self.inner.p_step(self._full(theta), sigma, stride)
+
+
+def window_objective(
+    prepared: Prepared,
+    t_ref: float,
+    cfg: Mapping[str, Any],
+    index: Any = slice(None),
+    grid: VoxelGrid | None = None,
+) -> ModelEvaluator:
+    """The configured objective (one cluster's contrast, weights set by the caller) over the
+    window's events ``index`` (default all) on ``grid`` (default the window's), stored in
+    ``volume.dtype`` (float32 halves the memory per event, float64 is the more accurate)."""
+    volume = VolumeObjective(
+        prepared.points[index],
+        prepared.t[index] - t_ref,
+        prepared.grid if grid is None else grid,
+        make_objective(**cfg["objective"]),
+        dtype=str(cfg["volume"]["dtype"]),
+    )
+    return ModelEvaluator(volume, prepared.dim)
+
+
+def p_step_settings(
+    ccfg: Mapping[str, Any], *, alone: bool
+) -> tuple[tuple[float, float, float], int]:
+    """The P-step's smoothing (x, y, depth voxels) and grid stride, checked:
+    ``clustering.p_step_sigma`` and ``p_step_stride`` for a window clustered with neighbouring
+    windows, ``clustering.p_step_alone`` for one clustered alone.
+
+    Decision: a window alone holds a third of a three-window span's events, and its volumes
+    want the wider blur; the span wants the narrower one, which keeps the static scene's
+    cluster off the events around a moving object (docs/method.md, "Defaults for a moving
+    camera")."""
+    given, sigma_key = _p_step_option(ccfg, "sigma", alone=alone)
+    stride, stride_key = _p_step_option(ccfg, "stride", alone=alone)
+    if not is_integer(stride, 1):
+        raise ValueError(f"{stride_key} must be an integer >= 1, got {stride!r}")
+    sigmas = p_step_sigmas(given, sigma_key)
+    check_p_step_blur(sigmas[0], stride, given, (sigma_key, stride_key))
+    return sigmas, stride
+
+
+def p_step_sigmas(value: Any, key: str = "clustering.p_step_sigma") -> tuple[float, float, float]:
+    """``clustering.p_step_sigma`` (or the setting ``key``) as (x, y, depth) voxels: one number
+    for every axis, or a pair ``[image, depth]`` (x and y share the first)."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        parts = [value]
+    elif isinstance(value, Sequence) and not isinstance(value, str):
+        parts = list(value)
+    else:
+        parts = []
+    numbers = all(isinstance(v, int | float) and not isinstance(v, bool) for v in parts)
+    sigmas = [float(v) for v in parts] if numbers else []
+    if len(sigmas) not in (1, 2) or not all(np.isfinite(v) and v >= 0 for v in sigmas):
+        raise ValueError(
+            f"{key} must be a number >= 0 or a pair [image, depth] of them (voxels), got {value!r}"
+        )
+    return (sigmas[0], sigmas[0], sigmas[-1])
+
+
+def _p_step_option(ccfg: Mapping[str, Any], name: str, *, alone: bool) -> tuple[Any, str]:
+    """The P-step setting ``name`` (``sigma``, ``stride`` or ``relabel_sigma``) and its key:
+    ``clustering.p_step_alone.NAME`` for a window clustered alone, else the top-level one."""
+    if alone:
+        return ccfg["p_step_alone"][name], f"clustering.p_step_alone.{name}"
+    top = {"sigma": "p_step_sigma", "stride": "p_step_stride"}.get(name, name)
+    return ccfg[top], f"clustering.{top}"
+
+
+def relabel_sigmas(ccfg: Mapping[str, Any], *, alone: bool) -> tuple[float, float, float] | None:
+    """``clustering.relabel_sigma`` (``clustering.p_step_alone.relabel_sigma`` for a window
+    clustered alone) as (x, y, depth) voxels, or None (off), validated.
+
+    Decision: once the velocities are final (after the refit), one more P-step at them,
+    smoothed less than the loop's, gives the labels. The loop needs its wider blur while
+    velocities and memberships still move; at the final velocities a sharper response
+    follows an object's outline more closely. A window alone holds a third of the events
+    per voxel, and there it cost accuracy (docs/method.md, "Relabelling")."""
+    value, key = _p_step_option(ccfg, "relabel_sigma", alone=alone)
+    return None if value is None else p_step_sigmas(value, key)

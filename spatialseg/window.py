@@ -1,0 +1,616 @@
+"""Clustering one window: its starts, Algorithm 1 from each, the refit and the labels.
+
+A window (a :class:`~spatialseg.recording.Recording` of two depth maps, or more with its
+context) and the run's settings in; a :class:`WindowResult` out: a label (N,) and
+memberships (N x K) per event, the clustering (K velocities, history) and its timings.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from spatialseg import edpa, motion_init
+from spatialseg.checks import integer_setting, is_integer, number_setting, optional_positive
+from spatialseg.clustering import (
+    ClusteringResult,
+    ConvergenceRules,
+    IterationRecord,
+    Repair,
+    StepStage,
+    cluster_responses,
+    grow_clusters,
+    initial_memberships,
+    iterative_clustering,
+    maximize_contrast,
+    p_step,
+    update_memberships,
+)
+from spatialseg.executors import check_parallel
+from spatialseg.objectives import make_objective
+from spatialseg.points import (
+    ModelEvaluator,
+    Prepared,
+    depth_change_cap,
+    off_edge_events,
+    p_step_settings,
+    prepare,
+    reference_time,
+    relabel_sigmas,
+    search_bounds,
+    spatial_velocities,
+    window_objective,
+)
+from spatialseg.recording import Recording, check_window_context
+from spatialseg.starts import (
+    PREVIOUS,
+    check_optimizer_name,
+    init_candidates,
+    initialise,
+    named_optimizer,
+    previous_init,
+)
+from spatialseg.volume import VolumeObjective
+
+__all__ = [
+    "FEW_EVENTS_PER_CLUSTER",
+    "MIN_EVENTS_PER_CLUSTER",
+    "WindowResult",
+    "assign_labels",
+    "check_config",
+    "check_events_per_cluster",
+    "cluster_count",
+    "label_rest",
+    "motion_separation",
+    "prior_weights",
+    "refit_velocities",
+    "relabel_prior_scale",
+    "segment_window",
+]
+
+# The per-iteration, per-start and too-few-events lines stay on the logger they always had:
+# Hydra prints its name, and hydra.verbose=spatialseg.pipeline shows the DEBUG ones (README).
+log = logging.getLogger("spatialseg.pipeline")
+
+
+#: Fewest usable events per cluster a window is segmented with: a cluster's velocity is
+#: three numbers fitted to the sharpness of its events' warped volume, and under about three
+#: events per number any velocity stacks them in as few voxels, so the fit is noise.
+MIN_EVENTS_PER_CLUSTER = 10
+
+#: Fewer usable events per cluster than this are segmented with a warning. Measured on
+#: ``interior`` (one window, two clusters, context 0, seeds 0-5): about 27 and 140 usable
+#: events per cluster gave a median accuracy of 0.70, 370 gave 0.96, 800 0.91
+#: and 1,700 0.98; a window's usable events are its events with depth that the
+#: background-activity filter supports (55-85 % of them there).
+FEW_EVENTS_PER_CLUSTER = 200
+
+
+@dataclass(frozen=True, eq=False)
+class WindowResult:
+    """The segmentation of one window: labels and probabilities cover its own events; the
+    clustering, ``prepared`` and ``t_ref`` describe the span it was clustered on (the
+    window with its ``window.context`` neighbours; the window alone by default)."""
+
+    labels: np.ndarray
+    probabilities: np.ndarray
+    clustering: ClusteringResult
+    prepared: Prepared
+    t_ref: float
+    timings: dict[str, float]
+    init_fallback: bool
+    init_method: str = ""  # the start kept (init.method, or the one init.method=auto chose)
+    ids: np.ndarray | None = None  # the object id of each cluster (segment_recording links)
+
+
+def segment_window(
+    window: Recording,
+    cfg: Mapping[str, Any],
+    optimizer: Any,
+    *,
+    seed: int,
+    on_iteration: Any = None,
+    previous: np.ndarray | None = None,
+    progress: str | None = None,
+) -> WindowResult:
+    """Segment one window (two depth maps) into ``cfg['n_clusters']`` motions; with
+    ``init.method=auto``, from each start of ``init.auto``, keeping the highest total
+    contrast. ``previous`` (K x the model's components): the preceding window's final
+    velocities, the ``previous`` start (skipped when None). ``progress``: the window's name
+    in a DEBUG line per iteration and per start (None: no such lines)."""
+    wanted = cluster_count(cfg)
+    k = wanted or (1 if previous is None else len(previous))
+    starts = [s for s in init_candidates(cfg["init"]) if s != PREVIOUS or previous is not None]
+    if wanted is None and previous is not None:  # auto: the window before's motions, grown
+        starts = [PREVIOUS]
+    alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    prepared = prepare(window, cfg)
+    check_events_per_cluster(prepared.points.shape[0], k, window.name)
+    t_ref = reference_time(prepared.t, cfg["volume"]["t_ref"])
+    xy = np.column_stack([window.events.x, window.events.y])[prepared.valid].astype(np.float64)
+    timings["prepare"] = time.perf_counter() - start
+    ccfg = cfg["clustering"]
+    bounds = search_bounds(prepared, float(ccfg["max_displacement"]), depth_change_cap(ccfg))
+    objectives: tuple[ModelEvaluator, tuple[StepStage, ...]] | None = None
+    kept: tuple[ClusteringResult, motion_init.InitResult, str] | None = None
+
+    def seed_motion(group: np.ndarray, group_seed: int) -> np.ndarray:
+        """The image_flow start's single motion of a group of the points."""
+        valid = np.zeros(len(window.events), dtype=bool)
+        valid[np.flatnonzero(prepared.valid)[group]] = True
+        part = replace(
+            prepared, points=prepared.points[group], t=prepared.t[group], valid=valid, rest=None
+        )
+        flow_cfg = {**cfg, "init": {**cfg["init"], "method": "image_flow"}}
+        init = initialise(window, part, flow_cfg, 1, bounds, seed=group_seed)
+        return init.thetas[0, : prepared.dim]
+
+    timings["init"] = timings["cluster"] = 0.0
+    for method in starts:
+        start = time.perf_counter()
+        if method == PREVIOUS:
+            if objectives is None:
+                objectives = _window_objectives(prepared, t_ref, cfg, optimizer, seed=seed)
+            assert previous is not None  # starts keeps PREVIOUS only with a previous window
+            init = previous_init(previous, prepared, objectives[0], ccfg, bounds, alone=alone)
+        else:
+            method_cfg = {**cfg, "init": {**cfg["init"], "method": method}}
+            init = initialise(
+                window, prepared, method_cfg, k, bounds, seed=seed, optimizer=optimizer
+            )
+        timings["init"] += time.perf_counter() - start
+        start = time.perf_counter()
+        if objectives is None:  # after the first start, so a tile start's volumes are freed
+            objectives = _window_objectives(prepared, t_ref, cfg, optimizer, seed=seed)
+        result = _cluster_from(
+            init,
+            prepared,
+            objectives,
+            cfg,
+            optimizer,
+            bounds,
+            seed=seed,
+            on_iteration=_iteration_logger(progress, method, on_iteration),
+            alone=alone,
+            xy=xy,
+            seed_motion=seed_motion,
+            auto=wanted is None,
+        )
+        timings["cluster"] += time.perf_counter() - start
+        if progress is not None and len(starts) > 1:
+            log.debug("%s, start %s: total contrast %.6g", progress, method, result.total)
+        if kept is None or _better(result, kept[0], auto=wanted is None):
+            kept = (result, init, method)
+    assert kept is not None and objectives is not None  # init_candidates names a start
+    result, init, method = kept
+    start = time.perf_counter()
+    result = refit_velocities(result, prepared, t_ref, cfg, bounds, seed=seed)
+    timings["refit"] = time.perf_counter() - start
+    sigmas = relabel_sigmas(cfg["clustering"], alone=alone)
+    if sigmas is not None:
+        start = time.perf_counter()
+        scale = relabel_prior_scale(ccfg)
+        prior = (
+            None
+            if scale is None
+            else prior_weights(prepared, result.thetas, result.probabilities, scale)
+        )
+        relabelled = p_step(objectives[0], result.thetas, result.probabilities, sigmas, 1, prior)
+        result = replace(result, probabilities=relabelled)
+        timings["relabel"] = time.perf_counter() - start
+    start = time.perf_counter()
+    probabilities = _full_probabilities(result.probabilities, prepared.valid)
+    if prepared.rest is not None and len(prepared.rest[0]):
+        rest = label_rest(prepared, t_ref, cfg, result, p_step_settings(ccfg, alone=alone))
+        probabilities[prepared.rest[2]] = rest
+    timings["label"] = time.perf_counter() - start
+    labels = assign_labels(
+        probabilities[prepared.labelled],
+        prepared.labelled,
+        float(cfg["clustering"]["min_probability"]),
+    )
+    return WindowResult(
+        labels, probabilities, result, prepared, t_ref, timings, bool(init.fallback), method
+    )
+
+
+def check_events_per_cluster(n_events: int, k: int, name: str) -> None:
+    """Refuse a window of ``n_events`` usable events for ``k`` clusters under
+    :data:`MIN_EVENTS_PER_CLUSTER` each and warn under :data:`FEW_EVENTS_PER_CLUSTER`, so a
+    window too short for its velocities says so instead of returning them."""
+
+    def too_few(floor: int) -> str:
+        return (
+            f"{name}: {n_events} usable events for {k} clusters (under {floor} per cluster); "
+            "use fewer clusters or a longer window"
+        )
+
+    if n_events < MIN_EVENTS_PER_CLUSTER * k:
+        raise ValueError(too_few(MIN_EVENTS_PER_CLUSTER))
+    if n_events < FEW_EVENTS_PER_CLUSTER * k:
+        log.warning("%s: its velocities are poorly determined", too_few(FEW_EVENTS_PER_CLUSTER))
+
+
+def check_config(cfg: Mapping[str, Any]) -> None:
+    """Refuse, before any data is loaded or simulated, the settings that would otherwise fail
+    only once the run reaches them, or never (an optimiser named for a stage that does not
+    run): the starts, the optimisers named by key, the refit's budget, the P-step and
+    relabelling smoothing and its grid (for windows with neighbours and alone), the context,
+    the depth-change cap, the relabelling prior, the stopping rules and EDPA's edge radius."""
+    init_candidates(cfg["init"])
+    init_candidates({**cfg["init"], "method": "auto"})  # init.auto, read only with auto
+    check_optimizer_name(str(cfg["init"]["tiles"]["refit"]), "init.tiles.refit")
+    check_optimizer_name(str(cfg["clustering"]["coarse"]["refine"]), "clustering.coarse.refine")
+    check_optimizer_name(str(cfg["clustering"]["refit"]["optimizer"]), "clustering.refit.optimizer")
+    _refit_budget(cfg)
+    p_step_settings(cfg["clustering"], alone=False)
+    p_step_settings(cfg["clustering"], alone=True)
+    check_window_context(cfg["window"]["context"])
+    check_parallel(cfg["window"]["parallel"], cfg["window"]["workers"])
+    depth_change_cap(cfg["clustering"])
+    relabel_sigmas(cfg["clustering"], alone=False)
+    relabel_sigmas(cfg["clustering"], alone=True)
+    relabel_prior_scale(cfg["clustering"])
+    _rules(cfg["clustering"])
+    cluster_count(cfg)
+    _max_clusters(cfg["clustering"])
+    edpa.check_edge_radius(cfg["edpa"]["edge_radius"])
+
+
+def _window_objectives(
+    prepared: Prepared, t_ref: float, cfg: Mapping[str, Any], optimizer: Any, *, seed: int
+) -> tuple[ModelEvaluator, tuple[StepStage, ...]]:
+    """The P-step's evaluator over every event and the theta-step's stages, shared by the
+    window's starts."""
+    evaluator = window_objective(prepared, t_ref, cfg)
+    return evaluator, _step_stages(prepared, t_ref, cfg, optimizer, evaluator, seed=seed)
+
+
+def _step_subset(
+    prepared: Prepared, t_ref: float, cfg: Mapping[str, Any], *, seed: int
+) -> tuple[ModelEvaluator, np.ndarray] | None:
+    """The theta-step's evaluator over at most ``clustering.step_events`` events drawn with
+    ``seed`` (and their indices), or None to optimise on all events. Unless
+    ``clustering.step_edges``, events on occlusion edges are left out of the draw.
+
+    Decision: the contrast's maximum is set by the motion, not by the event count, so the
+    velocities can be found on a sample while the P-step labels every event; the cost of
+    the theta-step then stops growing with the window (measured in docs/performance.md).
+    An event on an occlusion edge takes the nearer depth, which is wrong for the background
+    seen just after the occluder passed; such events biased the static scene's vz in
+    ``ego_street`` (docs/scenes.md), so they are labelled but do not steer the velocities.
+    """
+    ccfg = cfg["clustering"]
+    limit = ccfg["step_events"]
+    if limit is not None and int(limit) < 1:
+        raise ValueError(f"clustering.step_events must be >= 1 or null, got {limit}")
+    n = prepared.points.shape[0]
+    pool = (
+        np.arange(n)
+        if ccfg["step_edges"]
+        else off_edge_events(prepared, cluster_count(cfg) or _max_clusters(ccfg))
+    )
+    if len(pool) == n and (limit is None or n <= int(limit)):
+        return None
+    if limit is not None and len(pool) > int(limit):
+        pool = np.sort(np.random.default_rng(seed).choice(pool, int(limit), replace=False))
+    return window_objective(prepared, t_ref, cfg, pool), pool
+
+
+def _step_stages(
+    prepared: Prepared,
+    t_ref: float,
+    cfg: Mapping[str, Any],
+    optimizer: Any,
+    evaluator: ModelEvaluator,
+    *,
+    seed: int,
+) -> tuple[StepStage, ...]:
+    """The theta-step's stages: the optimiser on the theta-step's events (:func:`_step_subset`;
+    none: the loop's default stage); with ``clustering.coarse`` set, first on a grid
+    ``stride`` times coarser and at most ``events`` of them, then ``refine`` on them at full
+    resolution (a coarse-to-fine search: the global phase on the cheaper problem).
+    ``evaluator`` is the loop's, over every event: the refinement's when they all step."""
+    ccfg = cfg["clustering"]
+    budget, coarse = int(ccfg["evals_per_step"]), ccfg["coarse"]
+    step = _step_subset(prepared, t_ref, cfg, seed=seed)
+    if int(coarse["stride"]) == 1 and coarse["events"] is None:
+        return () if step is None else (StepStage(step[0], optimizer, budget, step[1]),)
+    if coarse["events"] is not None and int(coarse["events"]) < 1:
+        raise ValueError(f"clustering.coarse.events must be >= 1 or null, got {coarse['events']}")
+    fine, pool = step or (evaluator, np.arange(len(prepared.t)))
+    sample = pool
+    if coarse["events"] is not None and len(pool) > int(coarse["events"]):
+        draw = np.random.default_rng(seed + 1).choice(len(pool), int(coarse["events"]), False)
+        sample = pool[np.sort(draw)]
+    grid = prepared.grid.coarsened(int(coarse["stride"]))
+    refine = named_optimizer(str(coarse["refine"]), "clustering.coarse.refine")
+    return (
+        StepStage(window_objective(prepared, t_ref, cfg, sample, grid), optimizer, budget, sample),
+        StepStage(fine, refine, int(coarse["refine_evals"]), pool),
+    )
+
+
+def _rules(ccfg: Mapping[str, Any]) -> ConvergenceRules:
+    """The loop's stopping rules from ``clustering``, checked (their ranges: ConvergenceRules)."""
+    return ConvergenceRules(
+        max_iterations=integer_setting(ccfg["max_iterations"], "clustering.max_iterations", 1),
+        tol=number_setting(ccfg["tol"], "clustering.tol", 0),
+        patience=integer_setting(ccfg["patience"], "clustering.patience", 1),
+        target=number_setting(ccfg["target"], "clustering.target", optional=True),
+        label_tol=number_setting(ccfg["label_tol"], "clustering.label_tol", 0, optional=True),
+    )
+
+
+def _cluster_from(
+    init: motion_init.InitResult,
+    prepared: Prepared,
+    objectives: tuple[ModelEvaluator, tuple[StepStage, ...]],
+    cfg: Mapping[str, Any],
+    optimizer: Any,
+    bounds: np.ndarray,
+    *,
+    seed: int,
+    on_iteration: Any,
+    alone: bool,
+    xy: np.ndarray,
+    seed_motion: Any,
+    auto: bool = False,
+) -> ClusteringResult:
+    """Algorithm 1 from one start: its memberships, then the configured loop (``alone``: the
+    window has no neighbouring windows, :func:`~spatialseg.points.p_step_settings`); with
+    ``auto`` (``n_clusters=auto``) the clusters then grow and shrink
+    (:func:`spatialseg.clustering.grow_clusters`, up to ``clustering.max_clusters``;
+    ``xy``: the points' image positions; ``seed_motion(points, seed)``: the motion of a
+    group of points)."""
+    ccfg = cfg["clustering"]
+    sigmas, stride = p_step_settings(ccfg, alone=alone)
+    init_p = initial_memberships(
+        prepared.grid.coordinates(prepared.points),
+        prepared.grid.voxel_size,
+        init.labels,
+        len(init.thetas),
+        mode=ccfg["init_memberships"],
+        confidence=float(ccfg["init_confidence"]),
+    )
+    evaluator, stages = objectives
+    budget = int(ccfg["evals_per_step"])
+
+    def run(thetas: np.ndarray, p: np.ndarray, run_seed: int) -> ClusteringResult:
+        return iterative_clustering(
+            evaluator,
+            optimizer,
+            thetas,
+            p,
+            bounds,
+            rules=_rules(ccfg),
+            evals_per_step=budget,
+            p_step_sigma=sigmas,
+            p_step_stride=stride,
+            seed=run_seed,
+            on_iteration=on_iteration,
+            stages=stages,
+        )
+
+    result = run(init.thetas[:, : prepared.dim], init_p, seed)
+    if not auto:
+        return result
+    repair = Repair(
+        run=run,
+        responses=lambda thetas, p: cluster_responses(evaluator, thetas, p, sigmas, stride)[0],
+        fit=seed_motion,
+        separation=lambda a, b: motion_separation(prepared, a, b),
+        xy=xy,
+    )
+    return grow_clusters(result, repair, seed=seed + 1, max_clusters=_max_clusters(ccfg))
+
+
+def _better(result: ClusteringResult, than: ClusteringResult, *, auto: bool) -> bool:
+    """Whether one start's result beats another's: by the total contrast, or with
+    n_clusters=auto (different numbers of clusters) by the sharpness."""
+    if auto:
+        return result.sharpness > than.sharpness
+    return result.total > than.total
+
+
+def cluster_count(cfg: Mapping[str, Any]) -> int | None:
+    """``n_clusters``: a whole number >= 1, or None for ``auto``; a one-line error otherwise."""
+    value = cfg["n_clusters"]
+    if value == "auto":
+        return None
+    if not is_integer(value, 1):
+        raise ValueError(
+            f"n_clusters must be a whole number >= 1 or auto (the number found per window), "
+            f"got {value!r}"
+        )
+    return int(value)
+
+
+def _max_clusters(ccfg: Mapping[str, Any]) -> int:
+    """``clustering.max_clusters`` (n_clusters=auto's limit), checked."""
+    return integer_setting(ccfg["max_clusters"], "clustering.max_clusters", 1)
+
+
+def motion_separation(prepared: Prepared, a: np.ndarray, b: np.ndarray) -> float:
+    """How far apart (voxels, median over up to 2,000 of the points) two velocities of the
+    model move the window's points over half its span: below a voxel the volume cannot
+    tell the two motions apart."""
+    points = prepared.points[:: max(1, len(prepared.points) // 2000)]
+    half = 0.5 * float(prepared.t.max() - prepared.t.min())
+    va, vb = spatial_velocities(np.array([a, b]))
+    grid = prepared.grid
+    gap = grid.continuous_index(points - half * va) - grid.continuous_index(points - half * vb)
+    return float(np.nanmedian(np.linalg.norm(gap, axis=1)))
+
+
+def _refit_budget(cfg: Mapping[str, Any]) -> int:
+    """``clustering.refit.evals``, an integer >= 0 (0: no refit), after checking
+    ``clustering.refit.radius`` is in (0, 1]; a one-line error otherwise."""
+    rcfg = cfg["clustering"]["refit"]
+    budget, radius = rcfg["evals"], rcfg["radius"]
+    if not is_integer(budget, 0):
+        raise ValueError(f"clustering.refit.evals must be an integer >= 0 (0: off), got {budget!r}")
+    if isinstance(radius, bool) or not isinstance(radius, int | float) or not 0 < radius <= 1:
+        raise ValueError(f"clustering.refit.radius must be a number in (0, 1], got {radius!r}")
+    return budget
+
+
+def refit_velocities(
+    result: ClusteringResult,
+    prepared: Prepared,
+    t_ref: float,
+    cfg: Mapping[str, Any],
+    bounds: np.ndarray,
+    *,
+    seed: int,
+) -> ClusteringResult:
+    """``result`` with each velocity re-fitted once (``clustering.refit``), memberships fixed,
+    on the events off occlusion edges, within ``radius`` of the search box around the loop's
+    velocity; the history keeps the loop's velocities.
+
+    Decision: an edge event takes the nearer depth, wrong for the far surface seen just
+    after the occluder passed, yet an object crossing the background has most of its events
+    there, so the loop may need them to label it (``clustering.step_edges``); the velocities
+    are then measured on the events whose depth holds, with the final memberships the loop's
+    last theta-step never saw. The refit polishes and does not search: over the whole box
+    the local optimiser's first steps, sized by the box, wandered along the flat ridge of a
+    short window's depth velocity (docs/method.md, "The velocity refit").
+    """
+    budget = _refit_budget(cfg)
+    if budget == 0:
+        return result
+    rcfg = cfg["clustering"]["refit"]
+    index = off_edge_events(prepared, result.thetas.shape[0])
+    evaluator = window_objective(prepared, t_ref, cfg, index)
+    optimizer = named_optimizer(str(rcfg["optimizer"]), "clustering.refit.optimizer")
+    reach = float(rcfg["radius"]) * (bounds[:, 1] - bounds[:, 0])
+    thetas = result.thetas.copy()
+    for j in range(thetas.shape[0]):
+        evaluator.set_weights(result.probabilities[index, j])
+        near = np.column_stack(
+            [
+                np.maximum(bounds[:, 0], thetas[j] - reach),
+                np.minimum(bounds[:, 1], thetas[j] + reach),
+            ]
+        )
+        thetas[j], _ = maximize_contrast(evaluator, optimizer, thetas[j], near, budget, seed)
+    return replace(result, thetas=thetas)
+
+
+def relabel_prior_scale(ccfg: Mapping[str, Any]) -> float | None:
+    """``clustering.relabel_prior_scale``, validated: a positive number of voxels, or None."""
+    return optional_positive(ccfg["relabel_prior_scale"], "clustering.relabel_prior_scale")
+
+
+def prior_weights(
+    prepared: Prepared, thetas: np.ndarray, p: np.ndarray, scale: float
+) -> np.ndarray:
+    """Per event, ``exp(-d^2 / 2 scale^2)``: ``d`` is how far apart (voxels) its point lands
+    when moved over half the span by its two likeliest motions (by ``p``); 1 where the two
+    cannot tell the event apart, towards 0 where they clearly can (N,).
+
+    Decision: where two motions move a region alike (a forward-moving camera's far wall
+    near the focus of expansion, seen past a person crossing), both volumes hold the same
+    events there and the P-step keeps whatever memberships they had: its labels depend on
+    the start, not on evidence. There the clusters' shares decide
+    (:func:`spatialseg.clustering.p_step`, docs/method.md, "Relabelling")."""
+    if len(thetas) < 2:
+        return np.zeros(len(p))
+    half = 0.5 * float(prepared.t.max() - prepared.t.min())
+    moved = np.stack(
+        [
+            prepared.grid.continuous_index(prepared.points - half * v)
+            for v in spatial_velocities(thetas)
+        ],
+        axis=1,
+    )
+    top = np.argsort(-p, axis=1, kind="stable")[:, :2]
+    rows = np.arange(len(p))
+    gap = np.linalg.norm(moved[rows, top[:, 0]] - moved[rows, top[:, 1]], axis=1)
+    return np.exp(-0.5 * (np.nan_to_num(gap, nan=np.inf) / scale) ** 2)
+
+
+def label_rest(
+    prepared: Prepared,
+    t_ref: float,
+    cfg: Mapping[str, Any],
+    result: ClusteringResult,
+    blur: tuple[tuple[float, float, float], int],
+) -> np.ndarray:
+    """Memberships (R x K) of the events left out of the fit (``prepared.rest``): each
+    cluster's volume of the fitted events (their final memberships), smoothed as in the
+    P-step (``blur``: sigmas and stride), sampled where the cluster's motion warps each of
+    them; normalised (Eq. 26). An event no cluster's volume reaches takes the memberships of
+    the nearest fitted event, not a tie that the column order would break."""
+    points, t, _ = prepared.rest
+    both = np.vstack([prepared.points, points])
+    volume = VolumeObjective(
+        both,
+        np.concatenate([prepared.t, t]) - t_ref,
+        prepared.grid,
+        make_objective(**cfg["objective"]),
+        dtype=str(cfg["volume"]["dtype"]),
+    )
+    evaluator = ModelEvaluator(volume, prepared.dim)
+    zeros = np.zeros((len(points), result.probabilities.shape[1]))
+    memberships = np.vstack([result.probabilities, zeros])
+    responses = cluster_responses(evaluator, result.thetas, memberships, *blur)[0]
+    responses = responses[len(prepared.points) :]
+    rest = update_memberships(responses)
+    unexplained = ~np.any(responses > 0, axis=1)
+    if unexplained.any() and len(prepared.points):
+        nearest = cKDTree(prepared.points).query(points[unexplained])[1]
+        rest[unexplained] = result.probabilities[nearest]
+    return rest
+
+
+def _full_probabilities(p: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Memberships for all N events (zeros for events that were not clustered)."""
+    full = np.zeros((valid.shape[0], p.shape[1]), dtype=np.float32)
+    full[valid] = p
+    return full
+
+
+def assign_labels(
+    probabilities: np.ndarray, valid: np.ndarray, min_probability: float
+) -> np.ndarray:
+    """Labels for all N events: argmax membership, -1 where invalid or below the threshold."""
+    labels = np.full(valid.shape[0], -1, dtype=np.int64)
+    if probabilities.size:
+        best = probabilities.argmax(axis=1)
+        confident = probabilities.max(axis=1) >= min_probability
+        labels[np.flatnonzero(valid)[confident]] = best[confident]
+    return labels
+
+
+def _iteration_logger(
+    window: str | None, start: str, on_iteration: Any
+) -> Callable[[IterationRecord], None] | None:
+    """The per-iteration hook: a DEBUG line naming the window and the start (none when
+    ``window`` is None), then ``on_iteration`` (the caller's own, if any)."""
+    if window is None:
+        return on_iteration
+
+    def hook(record: IterationRecord) -> None:
+        """Log one outer iteration, then pass it on."""
+        log.debug(
+            "%s, start %s, iteration %d: total contrast %.6g, evaluations %d, %.2f s",
+            window,
+            start,
+            record.iteration,
+            record.total,
+            record.n_evals,
+            record.seconds,
+        )
+        if on_iteration is not None:
+            on_iteration(record)
+
+    return hook
