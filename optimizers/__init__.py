@@ -6,13 +6,16 @@
 
 Every optimiser shares one ``maximize`` (see :class:`Optimizer`): a hard evaluation budget,
 points always inside the bounds, non-finite values treated as the worst, determinism from
-``seed``. ``docs/optimizers.md`` describes each optimiser and its measured benchmark.
+``seed``. :func:`preset` names an optimiser with chosen hyperparameters (every registered
+name, and variants such as ``"nlopt_bobyqa"``). ``docs/optimizers.md`` describes each
+optimiser and its measured benchmark.
 """
 
 from optimizers.base import Optimizer, available, create, register
 from optimizers.gradient_ascent import GradientAscent
 from optimizers.multistart import MultistartLBFGS
 from optimizers.nlopt_backend import NLopt
+from optimizers.presets import preset, preset_hyperparameters, preset_names
 from optimizers.problem import finite_difference_gradient
 from optimizers.pso import PSO
 from optimizers.result import OptimizeResult
@@ -31,5 +34,8 @@ __all__ = [
     "available",
     "create",
     "finite_difference_gradient",
+    "preset",
+    "preset_hyperparameters",
+    "preset_names",
     "register",
 ]
