@@ -75,9 +75,15 @@ def test_bad_txt_line_is_named_with_its_line_number(tmp_path: Path) -> None:
 
 
 def test_polarity_conventions_cannot_mix_across_chunks(tmp_path: Path) -> None:
+    """A text file's mix is named by its lines however the file is cut; a binary one's by the
+    polarity that changed convention from one chunk to the next."""
     (tmp_path / "e.txt").write_text("0.1 1 1 0\n0.2 1 1 1\n0.3 1 1 -1\n")
+    for chunk in (1, 2, 3):
+        with pytest.raises(ValueError, match=r"e\.txt line 3: polarity -1 but line 1 has 0; use"):
+            list(iter_event_chunks(tmp_path / "e.txt", chunk, width=W, height=H))
+    np.savez(tmp_path / "e.npz", t=[0.1, 0.2, 0.3], x=[1, 1, 1], y=[1, 1, 1], p=[0, 1, -1])
     with pytest.raises(ValueError, match="polarity -1 after 0 earlier; use 0/1 or -1/"):
-        list(iter_event_chunks(tmp_path / "e.txt", 2, width=W, height=H))
+        list(iter_event_chunks(tmp_path / "e.npz", 2, width=W, height=H))
 
 
 def test_bad_chunk_size_and_missing_size(tmp_path: Path) -> None:

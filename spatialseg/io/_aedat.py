@@ -21,11 +21,16 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from spatialseg.events import EventStream
-from spatialseg.io._decode import damaged, decoding
+from spatialseg.io._decode import Block, damaged, decoding
 from spatialseg.recording import Keyframe
 
-__all__ = ["AedatHeader", "aedat_info", "iter_aedat_events", "read_aedat", "read_aedat_header"]
+__all__ = [
+    "AedatHeader",
+    "aedat_blocks",
+    "aedat_info",
+    "aedat_sensor_size",
+    "read_aedat_header",
+]
 
 _MAGIC = b"#!AER-DAT4.0\r\n"
 _PREFIX = len(_MAGIC) + 4  # the magic, then the header's length (uint32)
@@ -33,7 +38,6 @@ _COMPRESSIONS = range(5)  # none, LZ4, LZ4 high, Zstd, Zstd high
 _MIN_PACKET = 12  # size prefix, root offset and identifier of a packet's flatbuffer
 
 AedatInfo = tuple[int, tuple[int, int], int | None]  # events stream id, (W, H), frame stream id
-_EMPTY = (np.empty(0, np.int64), np.empty(0, np.int32), np.empty(0, np.int32), np.empty(0, np.int8))
 
 
 @dataclass(frozen=True)
@@ -161,13 +165,6 @@ def iter_aedat_packets(path: Path) -> Iterator[dict[str, Any]]:
             yield packet
 
 
-def iter_aedat_events(path: Path, stream_id: int) -> Iterator[tuple[np.ndarray, ...]]:
-    """``(t_us, x, y, p)`` arrays of each events packet of stream ``stream_id`` (t absolute)."""
-    for packet in iter_aedat_packets(path):
-        if packet.get("stream_id") == stream_id and "events" in packet:
-            yield _packet_events(packet)
-
-
 def _packet_events(packet: dict[str, Any]) -> tuple[np.ndarray, ...]:
     """``(t_us, x, y, p)`` of one events packet; polarity ``on`` becomes +1, off -1."""
     e = packet["events"]
@@ -184,19 +181,35 @@ def _frame_image(frame: dict[str, Any]) -> np.ndarray:
     return np.ascontiguousarray(pixels)
 
 
-def read_aedat(path: Path) -> tuple[EventStream, list[Keyframe]]:
-    """All events and frames of a file, in one pass; times in seconds since the first event."""
-    events_id, (width, height), frames_id = aedat_info(path)
-    parts: list[tuple[np.ndarray, ...]] = []
-    frames: list[tuple[int, np.ndarray]] = []
+def aedat_sensor_size(path: Path) -> tuple[int, int]:
+    """The sensor size of the file's first events stream."""
+    return aedat_info(path)[1]
+
+
+def _keyframes(frames: list[tuple[int, np.ndarray]], origin: int, path: Path) -> Block:
+    """A block of no events carrying ``(t_us, image)`` frames as keyframes, from ``origin``."""
+    none = np.empty(0, np.int32)
+    found = tuple(Keyframe((t - origin) / 1e6, image, str(path)) for t, image in frames)
+    return Block(np.empty(0), none, none, none.astype(np.int8), found)
+
+
+def aedat_blocks(path: Path, size: tuple[int, int], block_events: int) -> Iterator[Block]:
+    """Each events packet, and the frames as keyframes, in one pass; times in seconds since the
+    first event (or, in a file without events, the first frame: frames wait for the origin)."""
+    events_id, _, frames_id = aedat_info(path)
+    origin: int | None = None
+    frames: list[tuple[int, np.ndarray]] = []  # (t_us, image) not yet given out
     for packet in iter_aedat_packets(path):
         sid = packet.get("stream_id")
         if sid == events_id and "events" in packet:
-            parts.append(_packet_events(packet))
+            t, x, y, p = _packet_events(packet)
+            if origin is None and t.size:
+                origin = int(t[0])
+            yield Block((t - (origin or 0)) / 1e6, x, y, p)
         elif sid == frames_id and "frame" in packet:
             frames.append((int(packet["frame"]["t"]), _frame_image(packet["frame"])))
-    t, x, y, p = (np.concatenate(c) for c in zip(*parts, strict=True)) if parts else _EMPTY
-    origin = int(t[0]) if t.size else (frames[0][0] if frames else 0)
-    events = EventStream(x, y, (t - origin) / 1e6, p, width, height, str(path))
-    keyframes = [Keyframe((ft - origin) / 1e6, image, str(path)) for ft, image in frames]
-    return events, keyframes
+        if frames and origin is not None:
+            yield _keyframes(frames, origin, path)
+            frames = []
+    if frames:
+        yield _keyframes(frames, frames[0][0], path)

@@ -1,4 +1,5 @@
-"""Damaged files: one ``ValueError`` naming the file, the place in it, the problem and the fix.
+"""What every format's decoder shares: the :class:`Block` it yields, and for a damaged file one
+``ValueError`` naming the file, the place in it, the problem and the fix.
 
 Every reader runs its third-party decoders (zipfile and numpy for ``.npz``/``.npy``, h5py,
 PIL through matplotlib, the Rust ``aedat`` extension) inside :func:`decoding`, so whatever
@@ -12,14 +13,30 @@ import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import NamedTuple
 
-__all__ = ["damaged", "decoding"]
+import numpy as np
+
+from spatialseg.recording import Keyframe
+
+__all__ = ["Block", "damaged", "decoding"]
 
 #: The likely cause of a decoding failure and what to do about it.
 _FIX = "the file is damaged or truncated; copy or export it again"
 #: Never turned into a ValueError: the user or the interpreter stopping the read.
 _PASS_THROUGH = (KeyboardInterrupt, SystemExit, GeneratorExit)
 _MAX_DETAIL = 160  # characters of a decoder's own message kept in ours
+
+
+class Block(NamedTuple):
+    """Events a decoder read, in file order: ``t`` in seconds, ``x``, ``y`` pixels and ``p`` as
+    stored (0/1, -1/+1 or bool), plus any keyframes decoded among them (AEDAT4 frames)."""
+
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    p: np.ndarray
+    keyframes: tuple[Keyframe, ...] = ()
 
 
 def _one_line(text: str, limit: int = _MAX_DETAIL) -> str:

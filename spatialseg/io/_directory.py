@@ -17,14 +17,8 @@ import numpy as np
 
 from spatialseg.io._atomic import atomic_directory
 from spatialseg.io._decode import decoding
-from spatialseg.io._events import (
-    PathLike,
-    Size,
-    agreed_size,
-    load_events,
-    save_events,
-    stored_sensor_size,
-)
+from spatialseg.io._events import PathLike, Size, agreed_size, save_events
+from spatialseg.io._formats import read_whole, stored_size
 from spatialseg.io._text import (
     read_calib,
     read_sensor,
@@ -205,7 +199,7 @@ def _sensor_size(root: Path, maps: Sequence[DepthMap], events_path: Path) -> Siz
     sensor_txt = root / "sensor.txt"
     if sensor_txt.is_file():
         candidates.append((str(sensor_txt), read_sensor(sensor_txt)))
-    candidates.append((str(events_path), stored_sensor_size(events_path)))
+    candidates.append((str(events_path), stored_size(events_path)))
     size = agreed_size(candidates)
     if size is None:
         raise ValueError(
@@ -232,7 +226,7 @@ def read_recording(path: PathLike) -> Recording:
         raise FileNotFoundError(f"{calib}: not found; a recording needs 'fx fy cx cy' intrinsics")
     camera = read_calib(calib, *size)
     keyframes = _read_keyframes(root)
-    events = load_events(events_path, size)
+    events = read_whole(events_path, size)[0]
     ground_truth = _read_ground_truth(root / "ground_truth", len(events))
     return Recording(
         events, camera, tuple(depth_maps), tuple(keyframes), ground_truth, root.resolve().name

@@ -1,4 +1,5 @@
-"""Bare event files: ``.txt`` (RPG), ``.h5``/``.hdf5`` (DSEC layout) and ``.npz``.
+"""Bare event files: the ``.h5``/``.hdf5`` (DSEC layout) and ``.npz`` decoders, and the writer
+of ``.txt`` (RPG), ``.h5`` and ``.npz`` files.
 
 HDF5: datasets ``events/x``, ``events/y``, ``events/t``, ``events/p``; a float ``t`` is in
 seconds, an integer ``t`` in microseconds (DSEC) plus the root dataset ``t_offset`` (µs)
@@ -11,26 +12,29 @@ npz: arrays ``t`` (seconds), ``x``, ``y``, ``p`` and optionally 0-d ``width``, `
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+import zipfile
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import h5py
 import hdf5plugin  # noqa: F401  (registers Blosc, zstd, LZ4 ... filters with h5py on import)
 import numpy as np
 
-from spatialseg.events import EventStream, normalise_polarity
+from spatialseg.events import EventStream
 from spatialseg.io._atomic import atomic_file
-from spatialseg.io._decode import decoding
-from spatialseg.io._text import read_events_txt, write_events_txt
+from spatialseg.io._decode import Block, damaged, decoding
+from spatialseg.io._text import write_events_txt
 
 __all__ = [
     "PathLike",
     "agreed_size",
     "events_kind",
-    "load_events",
-    "read_events",
+    "h5_blocks",
+    "h5_sensor_size",
+    "npz_blocks",
+    "npz_sensor_size",
     "save_events",
-    "stored_sensor_size",
+    "size_pair",
     "write_events",
 ]
 
@@ -64,7 +68,7 @@ def agreed_size(candidates: Sequence[tuple[str, Size | None]]) -> Size | None:
     return known[0][1] if known else None
 
 
-def _size_pair(source: str, width: object, height: object) -> Size | None:
+def size_pair(source: str, width: object, height: object) -> Size | None:
     """A ``(width, height)`` given as both or neither, each a positive integer."""
     if width is None and height is None:
         return None
@@ -76,12 +80,6 @@ def _size_pair(source: str, width: object, height: object) -> Size | None:
     if w <= 0 or h <= 0:
         raise ValueError(f"{source}: sensor size {w}x{h} must be positive")
     return int(w), int(h)
-
-
-def _require_file(path: Path) -> None:
-    """Raise FileNotFoundError naming ``path`` if it is not a file."""
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: events file not found")
 
 
 def _open_h5(path: Path) -> h5py.File:
@@ -112,45 +110,33 @@ def _open_npz(path: Path) -> np.lib.npyio.NpzFile:
     return archive
 
 
-def stored_sensor_size(path: Path) -> Size | None:
-    """The sensor size an events file records (HDF5 attributes, npz arrays); None for .txt."""
-    kind = events_kind(path)
-    _require_file(path)
-    if kind == "h5":
-        with _open_h5(path) as f:
-            group = _h5_events(f, path)
-            with decoding(path, "HDF5", "attributes of events"):
-                width, height = group.attrs.get("width"), group.attrs.get("height")
-            return _size_pair(f"{path} (attributes of events)", width, height)
-    if kind == "npz":
-        with _open_npz(path) as archive:
-            width, height = (_npz_member(archive, path, k) for k in ("width", "height"))
-            return _size_pair(str(path), width, height)
-    return None
+def h5_sensor_size(path: Path) -> Size | None:
+    """The sensor size stored as attributes ``width``/``height`` of ``events`` (None without)."""
+    with _open_h5(path) as f:
+        group = _h5_events(f, path)
+        with decoding(path, "HDF5", "attributes of events"):
+            width, height = group.attrs.get("width"), group.attrs.get("height")
+        return size_pair(f"{path} (attributes of events)", width, height)
 
 
-def h5_dataset(f: h5py.File, path: Path, name: str, part: slice | tuple[()] = ()) -> np.ndarray:
+def npz_sensor_size(path: Path) -> Size | None:
+    """The sensor size stored as 0-d arrays ``width``, ``height`` (None without)."""
+    with _open_npz(path) as archive:
+        width, height = (_npz_member(archive, path, k) for k in ("width", "height"))
+        return size_pair(str(path), width, height)
+
+
+def _h5_dataset(f: h5py.File, path: Path, name: str, part: slice | tuple[()] = ()) -> np.ndarray:
     """``part`` (default: all) of dataset ``name``, e.g. ``events/t``; a failure names it."""
     with decoding(path, "HDF5", f"dataset {name}"):
         return f[name][part]
 
 
-def h5_time_offset(f: h5py.File, path: Path) -> np.int64:
+def _h5_time_offset(f: h5py.File, path: Path) -> np.int64:
     """The root dataset ``t_offset`` (DSEC, microseconds), 0 without it."""
     with decoding(path, "HDF5", "dataset t_offset"):
         present = "t_offset" in f
-    return np.int64(h5_dataset(f, path, "t_offset")) if present else np.int64(0)
-
-
-def _read_h5_arrays(path: Path) -> tuple[np.ndarray, ...]:
-    """``t`` (seconds), ``x``, ``y``, ``p`` of an HDF5 file; integer t is DSEC's microseconds."""
-    with _open_h5(path) as f:
-        _h5_events(f, path)
-        t, x, y, p = (h5_dataset(f, path, f"events/{k}") for k in _FIELDS)
-        offset = h5_time_offset(f, path)
-    if t.dtype.kind in "iu":
-        t = (t.astype(np.int64) + offset) / 1e6
-    return t, x, y, p
+    return np.int64(_h5_dataset(f, path, "t_offset")) if present else np.int64(0)
 
 
 def _npz_member(archive: np.lib.npyio.NpzFile, path: Path, name: str) -> np.ndarray | None:
@@ -159,7 +145,7 @@ def _npz_member(archive: np.lib.npyio.NpzFile, path: Path, name: str) -> np.ndar
         return archive[name] if name in archive.files else None
 
 
-def require_npz_arrays(path: Path, names: Sequence[str]) -> None:
+def _require_npz_arrays(path: Path, names: Sequence[str]) -> None:
     """Raise a ValueError naming the arrays t, x, y, p missing from ``names``."""
     missing = [k for k in _FIELDS if k not in names]
     if missing:
@@ -169,39 +155,63 @@ def require_npz_arrays(path: Path, names: Sequence[str]) -> None:
         )
 
 
-def _read_npz_arrays(path: Path) -> tuple[np.ndarray, ...]:
-    """``t`` (seconds), ``x``, ``y``, ``p`` of an ``.npz`` archive."""
-    with _open_npz(path) as archive:
-        require_npz_arrays(path, archive.files)
-        return tuple(_npz_member(archive, path, k) for k in _FIELDS)
+def h5_blocks(path: Path, size: Size, block_events: int) -> Iterator[Block]:
+    """Slices of ``events/{t,x,y,p}``; integer t is microseconds plus ``t_offset`` (DSEC)."""
+    with _open_h5(path) as f:
+        group = _h5_events(f, path)
+        offset = _h5_time_offset(f, path)
+        lengths = {}
+        for k in _FIELDS:
+            with decoding(path, "HDF5", f"dataset events/{k}"):
+                lengths[k] = group[k].shape
+        if len(set(lengths.values())) != 1 or len(lengths["t"]) != 1:
+            raise ValueError(f"{path}: events datasets differ in shape {lengths}; give 1-D arrays")
+        for start in range(0, lengths["t"][0], block_events):
+            part = slice(start, start + block_events)
+            t, x, y, p = (_h5_dataset(f, path, f"events/{k}", part) for k in _FIELDS)
+            if t.dtype.kind in "iu":
+                t = (t.astype(np.int64) + offset) / 1e6
+            yield Block(t, x, y, p)
 
 
-def load_events(path: Path, size: Size) -> EventStream:
-    """The validated events of a file for a sensor of ``size = (width, height)``."""
-    kind = events_kind(path)
-    _require_file(path)
-    if kind == "txt":
-        return read_events_txt(path, *size)
-    t, x, y, p = _read_h5_arrays(path) if kind == "h5" else _read_npz_arrays(path)
-    return EventStream(x, y, t, normalise_polarity(p, str(path)), *size, source=str(path))
-
-
-def read_events(
-    path: PathLike, *, width: int | None = None, height: int | None = None
-) -> EventStream:
-    """Read a bare ``.txt``/``.h5``/``.hdf5``/``.npz`` events file; size from the file or args."""
-    path = Path(path)
-    size = agreed_size(
-        [
-            ("width=/height=", _size_pair("width=/height=", width, height)),
-            (str(path), stored_sensor_size(path)),
-        ]
-    )
-    if size is None:
-        raise ValueError(
-            f"{path}: sensor size unknown (the file does not store it); pass width= and height="
+def _npy_member(archive: zipfile.ZipFile, name: str, path: Path) -> tuple[object, np.dtype, int]:
+    """An open member ``name.npy`` of an ``.npz``, positioned at its data, its dtype and length."""
+    with decoding(path, ".npz", f"member '{name}.npy'"):
+        stream = archive.open(f"{name}.npy")
+        version = np.lib.format.read_magic(stream)
+        read_header = (
+            np.lib.format.read_array_header_1_0
+            if version == (1, 0)
+            else np.lib.format.read_array_header_2_0
         )
-    return load_events(path, size)
+        shape, _, dtype = read_header(stream)
+    if len(shape) != 1 or dtype.hasobject:
+        raise ValueError(f"{path}: array {name!r} has shape {shape} {dtype}; expected 1-D numbers")
+    return stream, dtype, int(shape[0])
+
+
+def npz_blocks(path: Path, size: Size, block_events: int) -> Iterator[Block]:
+    """``block_events`` elements at a time of each of ``t, x, y, p``, read out of the archive
+    incrementally (no need to unzip or load it)."""
+    with decoding(path, ".npz"):
+        archive = zipfile.ZipFile(path)
+    with archive:
+        _require_npz_arrays(path, [name.removesuffix(".npy") for name in archive.namelist()])
+        members = {k: _npy_member(archive, k, path) for k in _FIELDS}
+        lengths = {k: m[2] for k, m in members.items()}
+        if len(set(lengths.values())) != 1:
+            raise ValueError(f"{path}: arrays differ in length {lengths}; give one per event")
+        for start in range(0, lengths["t"], block_events):
+            count = min(block_events, lengths["t"] - start)
+            block = []
+            for name, (stream, dtype, _) in members.items():
+                where = f"member '{name}.npy'"
+                with decoding(path, ".npz", where):
+                    data = stream.read(count * dtype.itemsize)
+                if len(data) != count * dtype.itemsize:
+                    raise damaged(path, f"array data ends before event {start + count}", where)
+                block.append(np.frombuffer(data, dtype=dtype))
+            yield Block(*block)
 
 
 def _disk_arrays(events: EventStream) -> dict[str, np.ndarray]:

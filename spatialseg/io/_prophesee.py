@@ -35,17 +35,20 @@ import numpy as np
 
 from spatialseg.events import EventStream
 from spatialseg.io._atomic import atomic_file
-from spatialseg.io._decode import damaged
+from spatialseg.io._decode import Block, damaged
 
 __all__ = [
     "ProphHeader",
     "iter_prophesee_arrays",
+    "prophesee_blocks",
+    "prophesee_sensor_size",
     "read_prophesee_header",
     "write_prophesee",
 ]
 
 #: Most words decoded per block (bounds the decoder's temporaries to a few tens of MB).
 _BLOCK_WORDS = 1 << 18
+_MIN_BLOCK_WORDS = 4096  # decode at least this many words per block (speed)
 _EVT3_TYPES = np.isin(np.arange(16), [0x0, 0x2, 0x3, 0x4, 0x5, 0x6, 0x7, 0x8, 0xA, 0xE, 0xF])
 _EVT2_TYPES = np.isin(np.arange(16), [0x0, 0x1, 0x8, 0xA, 0xE, 0xF])
 _DAT_TYPES = {0, 12}
@@ -306,6 +309,18 @@ def iter_prophesee_arrays(
                 out = _decode_evt3(path, block, state)
             state.words += block.size
             yield out
+
+
+def prophesee_sensor_size(path: Path) -> tuple[int, int] | None:
+    """The sensor size of a ``.raw``/``.dat`` header (None if it names none)."""
+    return read_prophesee_header(path).size
+
+
+def prophesee_blocks(path: Path, size: tuple[int, int], block_events: int) -> Iterator[Block]:
+    """The events of a ``.raw``/``.dat`` file, about ``block_events`` words a block, in seconds."""
+    words = min(_BLOCK_WORDS, max(block_events, _MIN_BLOCK_WORDS))
+    for t, x, y, p in iter_prophesee_arrays(path, read_prophesee_header(path), words):
+        yield Block(t / 1e6, x, y, p)
 
 
 def _dat_bytes(events: EventStream, t_us: np.ndarray) -> bytes:

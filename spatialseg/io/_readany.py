@@ -1,10 +1,11 @@
-"""One entry point for every supported recording type: :func:`read_any`.
+"""One entry point for every supported recording type: :func:`read_any`; and
+:func:`read_events` for the bare events files spatialseg also writes.
 
 The reader is picked by what ``path`` is: a recording directory (events, ``calib.txt``,
-depth maps, keyframes, ground truth) or a bare events file by suffix (``.txt``, ``.h5``,
-``.hdf5``, ``.npz``, ``.aedat4``, ``.raw``, ``.dat``). Bare files carry no intrinsics, so
-the camera comes from the caller: an explicit :class:`Camera`, or a nominal pinhole of a
-given horizontal field of view (principal point at the image centre, square pixels).
+depth maps, keyframes, ground truth) or a bare events file of a registered format, by suffix
+(``spatialseg.io._formats``). Bare files carry no intrinsics, so the camera comes from the
+caller: an explicit :class:`Camera`, or a nominal pinhole of a given horizontal field of
+view (principal point at the image centre, square pixels).
 """
 
 from __future__ import annotations
@@ -13,15 +14,14 @@ import math
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
 from spatialseg.events import EventStream
 from spatialseg.io._directory import read_recording
-from spatialseg.io._events import PathLike, load_events
-from spatialseg.io._stream import SUPPORTED, _stored_size, recording_kind, resolve_size
-from spatialseg.recording import Camera, Keyframe, Recording
+from spatialseg.io._events import PathLike, agreed_size, events_kind, size_pair
+from spatialseg.io._formats import read_whole, stored_size
+from spatialseg.io._stream import recording_kind, resolve_size
+from spatialseg.recording import Camera, Recording
 
-__all__ = ["SUPPORTED", "nominal_camera", "read_any"]
+__all__ = ["nominal_camera", "read_any", "read_events"]
 
 
 def nominal_camera(width: int, height: int, fov_deg: float) -> Camera:
@@ -51,18 +51,6 @@ def _camera_for(
     return nominal_camera(*size, fov_deg)
 
 
-def _read_prophesee(path: Path, size: tuple[int, int]) -> EventStream:
-    """All events of a Prophesee ``.raw``/``.dat`` file, in seconds."""
-    from spatialseg.io._prophesee import iter_prophesee_arrays, read_prophesee_header
-
-    blocks = list(iter_prophesee_arrays(path, read_prophesee_header(path)))
-    if blocks:
-        t, x, y, p = (np.concatenate(c) for c in zip(*blocks, strict=True))
-    else:
-        t, x, y, p = np.empty(0), np.empty(0, int), np.empty(0, int), np.empty(0, np.int8)
-    return EventStream(x, y, t / 1e6, p, *size, source=str(path))
-
-
 def read_any(
     path: PathLike, *, camera: Camera | None = None, fov_deg: float | None = None
 ) -> Recording:
@@ -73,22 +61,34 @@ def read_any(
     intrinsics get :func:`nominal_camera` of ``fov_deg``. AEDAT4 frames become keyframes.
     """
     path = Path(path)
-    kind = recording_kind(path)
-    given = None if camera is None else (int(camera.width), int(camera.height))
-    if kind == "directory":
+    if recording_kind(path) == "directory":
         recording = read_recording(path)
         if camera is None:
             return recording
         size = (recording.camera.width, recording.camera.height)
         return replace(recording, camera=_camera_for(path, size, camera, None))
-    keyframes: list[Keyframe] = []
-    if kind == "aedat4":
-        from spatialseg.io._aedat import read_aedat
-
-        events, keyframes = read_aedat(path)
-        resolve_size(path, (events.width, events.height), given)
-    else:
-        size = resolve_size(path, _stored_size(path, kind), given)
-        events = _read_prophesee(path, size) if kind == "prophesee" else load_events(path, size)
+    given = None if camera is None else (int(camera.width), int(camera.height))
+    events, keyframes = read_whole(path, resolve_size(path, stored_size(path), given))
     cam = _camera_for(path, (events.width, events.height), camera, fov_deg)
-    return Recording(events, cam, keyframes=tuple(keyframes), name=path.stem)
+    return Recording(events, cam, keyframes=keyframes, name=path.stem)
+
+
+def read_events(
+    path: PathLike, *, width: int | None = None, height: int | None = None
+) -> EventStream:
+    """Read a bare ``.txt``/``.h5``/``.hdf5``/``.npz`` events file; size from the file or args."""
+    path = Path(path)
+    events_kind(path)  # the types write_events writes (read_any reads every registered one)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: events file not found")
+    size = agreed_size(
+        [
+            ("width=/height=", size_pair("width=/height=", width, height)),
+            (str(path), stored_size(path)),
+        ]
+    )
+    if size is None:
+        raise ValueError(
+            f"{path}: sensor size unknown (the file does not store it); pass width= and height="
+        )
+    return read_whole(path, size)[0]

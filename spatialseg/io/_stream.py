@@ -1,73 +1,37 @@
 """Reading events window by window, so a recording larger than memory can be processed.
 
 :func:`iter_event_chunks` yields :class:`EventStream` chunks of exactly ``chunk_events``
-events (the last may be shorter) from any supported file type. Only about one chunk (plus
-one block of the underlying file) is held at a time: text is parsed ``chunk_events``
-lines at a time, HDF5 datasets are sliced, ``.npz`` members are read incrementally from
-the archive, AEDAT4 packets and Prophesee words are decoded block by block.
+events (the last may be shorter) from any registered format (``spatialseg.io._formats``):
+its decoder gives blocks of about ``chunk_events`` events, regrouped here, so only about one
+chunk (plus one block of the underlying file) is held at a time.
 """
 
 from __future__ import annotations
 
-import io
-import itertools
 import math
-import warnings
-import zipfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from spatialseg.checks import is_integer
-from spatialseg.events import EventStream, normalise_polarity
-from spatialseg.io._decode import damaged, decoding
-from spatialseg.io._events import (
-    PathLike,
-    Size,
-    _h5_events,
-    _open_h5,
-    _size_pair,
-    agreed_size,
-    h5_dataset,
-    h5_time_offset,
-    require_npz_arrays,
-    stored_sensor_size,
-)
-from spatialseg.io._text import _parse_event_line, read_sensor
+from spatialseg.events import EventStream
+from spatialseg.io._events import PathLike, Size, agreed_size, size_pair
+from spatialseg.io._formats import format_for, signed_polarity, stored_size
+from spatialseg.io._text import read_sensor
 
-__all__ = ["SUPPORTED", "iter_event_chunks", "recording_kind", "resolve_size"]
+__all__ = ["iter_event_chunks", "recording_kind", "resolve_size"]
 
-#: File kind by (lower-case) suffix; a directory is a recording directory.
-_KINDS = {
-    ".txt": "txt",
-    ".h5": "h5",
-    ".hdf5": "h5",
-    ".npz": "npz",
-    ".aedat4": "aedat4",
-    ".raw": "prophesee",
-    ".dat": "prophesee",
-}
-#: What :func:`recording_kind` accepts, for error messages and docs.
-SUPPORTED = (
-    "a recording directory, .txt, .h5/.hdf5, .npz, .aedat4 (iniVation DV), "
-    ".raw (Prophesee EVT 2.0/3.0), .dat (Prophesee DAT)"
-)
-_FIELDS = ("t", "x", "y", "p")
-_MIN_BLOCK_WORDS = 4096  # decode at least this many Prophesee words per step (speed)
-Block = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # t [s], x, y, p
+Columns = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # t [s], x, y, p (+1/-1)
 
 
 def recording_kind(path: Path) -> str:
-    """``directory``, ``txt``, ``h5``, ``npz``, ``aedat4`` or ``prophesee`` for ``path``."""
+    """``directory``, or the name of the registered format of ``path``'s suffix."""
     if path.is_dir():
         return "directory"
     if not path.exists():
         raise FileNotFoundError(f"{path}: not found")
-    kind = _KINDS.get(path.suffix.lower())
-    if kind is None:
-        raise ValueError(f"{path}: unknown file type {path.suffix!r}; supported: {SUPPORTED}")
-    return kind
+    return format_for(path).name
 
 
 def resolve_size(path: Path, stored: Size | None, given: Size | None) -> Size:
@@ -95,142 +59,18 @@ class _Polarity:
 
     def __call__(self, p: np.ndarray) -> np.ndarray:
         """``p`` as int8 -1/+1, checking it uses the same convention as earlier blocks."""
-        out = normalise_polarity(p, self.source)
-        if p.dtype != bool and p.size:
-            seen = set(np.unique(p[p != 1]).tolist())
-            for value in seen:
-                if self.negative is None:
-                    self.negative = value
-                elif value != self.negative:
-                    raise ValueError(
-                        f"{self.source}: polarity {value:g} after {self.negative:g} earlier; "
-                        "use 0/1 or -1/+1, not a mix"
-                    )
+        out = signed_polarity(p, self.source)
+        first = int(np.argmin(out)) if out.size else 0  # the first -1, if any
+        if p.dtype != bool and out.size and out[first] < 0:
+            value = p[first].item()  # 0 or -1: a block holds one convention
+            if self.negative is None:
+                self.negative = value
+            elif value != self.negative:
+                raise ValueError(
+                    f"{self.source}: polarity {value:g} after {self.negative:g} earlier; "
+                    "use 0/1 or -1/+1, not a mix"
+                )
         return out
-
-
-def _bad_txt_line(path: Path, lines: list[str], first: int, size: Size, previous: float) -> None:
-    """Raise a ValueError naming the first bad ``t x y p`` line among ``lines``."""
-    for number, line in enumerate(lines, start=first):
-        text = line.split("#", 1)[0].strip()
-        if not text:
-            continue
-        where = f"{path} line {number}"
-        t, _ = _parse_event_line(where, text.split(), *size)
-        if t < previous:
-            raise ValueError(
-                f"{where}: timestamps not sorted ({t!r} < {previous!r}); sort the file by time"
-            )
-        previous = t
-
-
-def _txt_blocks(path: Path, chunk_events: int, size: Size) -> Iterator[Block]:
-    """``chunk_events`` lines at a time of a ``t x y p`` file, parsed by ``np.loadtxt``."""
-    polarity, previous, first = _Polarity(str(path)), -math.inf, 1
-    with path.open(encoding="utf-8", errors="replace") as f:
-        while lines := list(itertools.islice(f, chunk_events)):
-            try:
-                with warnings.catch_warnings():
-                    warnings.filterwarnings("ignore", "loadtxt: input contained no data")
-                    table = np.loadtxt(io.StringIO("".join(lines)), comments="#", ndmin=2)
-                if table.size == 0:
-                    first += len(lines)
-                    continue
-                if table.shape[1] != 4:
-                    raise ValueError(f"expected 4 columns 't x y p', got {table.shape[1]}")
-                t, x, y, p = table.T
-                events = EventStream(x, y, t, polarity(p), *size, source=str(path))
-                if events.t[0] < previous:
-                    raise ValueError("timestamps not sorted")
-            except ValueError as exc:
-                _bad_txt_line(path, lines, first, size, previous)
-                last = first + len(lines) - 1
-                raise ValueError(f"{path} lines {first}..{last}: {exc}") from None
-            previous, first = float(events.t[-1]), first + len(lines)
-            yield events.t, events.x, events.y, events.p
-
-
-def _h5_blocks(path: Path, chunk_events: int) -> Iterator[Block]:
-    """Slices of ``events/{t,x,y,p}``; integer t is microseconds plus ``t_offset`` (DSEC)."""
-    polarity = _Polarity(str(path))
-    with _open_h5(path) as f:
-        group = _h5_events(f, path)
-        offset = h5_time_offset(f, path)
-        with decoding(path, "HDF5", "group events"):
-            lengths = {k: group[k].shape for k in _FIELDS}
-        if len(set(lengths.values())) != 1 or len(lengths["t"]) != 1:
-            raise ValueError(f"{path}: events datasets differ in shape {lengths}; give 1-D arrays")
-        for start in range(0, lengths["t"][0], chunk_events):
-            part = slice(start, start + chunk_events)
-            t, x, y, p = (h5_dataset(f, path, f"events/{k}", part) for k in _FIELDS)
-            if t.dtype.kind in "iu":
-                t = (t.astype(np.int64) + offset) / 1e6
-            yield t, x, y, polarity(p)
-
-
-def _npy_member(archive: zipfile.ZipFile, name: str, path: Path) -> tuple[object, np.dtype, int]:
-    """An open member ``name.npy`` of an ``.npz``, positioned at its data, its dtype and length."""
-    with decoding(path, ".npz", f"member '{name}.npy'"):
-        stream = archive.open(f"{name}.npy")
-        version = np.lib.format.read_magic(stream)
-        read_header = (
-            np.lib.format.read_array_header_1_0
-            if version == (1, 0)
-            else np.lib.format.read_array_header_2_0
-        )
-        shape, _, dtype = read_header(stream)
-    if len(shape) != 1 or dtype.hasobject:
-        raise ValueError(f"{path}: array {name!r} has shape {shape} {dtype}; expected 1-D numbers")
-    return stream, dtype, int(shape[0])
-
-
-def _npz_blocks(path: Path, chunk_events: int) -> Iterator[Block]:
-    """``chunk_events`` elements at a time of each of ``t, x, y, p`` of an ``.npz`` archive."""
-    polarity = _Polarity(str(path))
-    with decoding(path, ".npz"):
-        archive = zipfile.ZipFile(path)
-    with archive:
-        require_npz_arrays(path, [name.removesuffix(".npy") for name in archive.namelist()])
-        members = {k: _npy_member(archive, k, path) for k in _FIELDS}
-        lengths = {k: m[2] for k, m in members.items()}
-        if len(set(lengths.values())) != 1:
-            raise ValueError(f"{path}: arrays differ in length {lengths}; give one per event")
-        for start in range(0, lengths["t"], chunk_events):
-            count = min(chunk_events, lengths["t"] - start)
-            block = []
-            for name, (stream, dtype, _) in members.items():
-                where = f"member '{name}.npy'"
-                with decoding(path, ".npz", where):
-                    data = stream.read(count * dtype.itemsize)
-                if len(data) != count * dtype.itemsize:
-                    raise damaged(path, f"array data ends before event {start + count}", where)
-                block.append(np.frombuffer(data, dtype=dtype))
-            t, x, y, p = block
-            yield t, x, y, polarity(p)
-
-
-def _aedat_blocks(path: Path) -> Iterator[Block]:
-    """AEDAT4 events packet by packet, in seconds since the first event."""
-    from spatialseg.io._aedat import aedat_info, iter_aedat_events
-
-    origin: int | None = None
-    for t, x, y, p in iter_aedat_events(path, aedat_info(path)[0]):
-        if origin is None and t.size:
-            origin = int(t[0])
-        yield (t - (origin or 0)) / 1e6, x, y, p
-
-
-def _prophesee_blocks(path: Path, chunk_events: int) -> Iterator[Block]:
-    """Prophesee ``.raw``/``.dat`` events, about ``chunk_events`` words at a time, in seconds."""
-    from spatialseg.io._prophesee import (
-        _BLOCK_WORDS,
-        iter_prophesee_arrays,
-        read_prophesee_header,
-    )
-
-    words = min(_BLOCK_WORDS, max(chunk_events, _MIN_BLOCK_WORDS))
-    for t, x, y, p in iter_prophesee_arrays(path, read_prophesee_header(path), words):
-        yield t / 1e6, x, y, p
 
 
 def _first_depth_shape(root: Path) -> tuple[str, Size] | None:
@@ -254,7 +94,7 @@ def _directory_source(root: Path, given: Size | None) -> tuple[Path, Size]:
         ("the given sensor size", given),
         _first_depth_shape(root) or ("depth maps", None),
         (str(sensor), read_sensor(sensor) if sensor.is_file() else None),
-        (str(events_path), stored_sensor_size(events_path)),
+        (str(events_path), stored_size(events_path)),
     ]
     size = agreed_size(candidates)
     if size is None:
@@ -264,26 +104,11 @@ def _directory_source(root: Path, given: Size | None) -> tuple[Path, Size]:
     return events_path, size
 
 
-def _stored_size(path: Path, kind: str) -> Size | None:
-    """The sensor size a file records in its header or attributes (None if it does not)."""
-    if kind in ("h5", "npz"):
-        return stored_sensor_size(path)
-    if kind == "aedat4":
-        from spatialseg.io._aedat import aedat_info
-
-        return aedat_info(path)[1]
-    if kind == "prophesee":
-        from spatialseg.io._prophesee import read_prophesee_header
-
-        return read_prophesee_header(path).size
-    return None
-
-
 def _rebatch(
-    blocks: Iterable[Block], chunk_events: int, size: Size, source: str
+    blocks: Iterable[Columns], chunk_events: int, size: Size, source: str
 ) -> Iterator[EventStream]:
     """Regroup blocks into EventStreams of exactly ``chunk_events`` events (the last shorter)."""
-    pending: list[Block] = []
+    pending: list[Columns] = []
     count, start, last_t = 0, 0, -math.inf
 
     def emit(n: int) -> EventStream:
@@ -328,24 +153,12 @@ def iter_event_chunks(
     path = Path(path)
     if not is_integer(chunk_events, 1):
         raise ValueError(f"chunk_events={chunk_events!r}; give a positive integer")
-    given = _size_pair("width=/height=", width, height)
-    kind = recording_kind(path)
-    if kind == "directory":
+    given = size_pair("width=/height=", width, height)
+    if recording_kind(path) == "directory":
         path, size = _directory_source(path, given)
-        kind = _KINDS[path.suffix.lower()]
     else:
-        size = resolve_size(path, _stored_size(path, kind), given)
-    return _rebatch(_blocks(path, kind, chunk_events, size), chunk_events, size, str(path))
-
-
-def _blocks(path: Path, kind: str, chunk_events: int, size: Size) -> Iterable[Block]:
-    """The raw blocks of an events file of ``kind``, in file order."""
-    if kind == "txt":
-        return _txt_blocks(path, chunk_events, size)
-    if kind == "h5":
-        return _h5_blocks(path, chunk_events)
-    if kind == "npz":
-        return _npz_blocks(path, chunk_events)
-    if kind == "aedat4":
-        return _aedat_blocks(path)
-    return _prophesee_blocks(path, chunk_events)
+        size = resolve_size(path, stored_size(path), given)
+    polarity = _Polarity(str(path))
+    blocks = format_for(path).decode(path, size, chunk_events)
+    ordered = ((b.t, b.x, b.y, polarity(b.p)) for b in blocks)
+    return _rebatch(ordered, chunk_events, size, str(path))

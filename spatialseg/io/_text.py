@@ -2,43 +2,52 @@
 ``t path`` listings (``depthmaps.txt``, ``images.txt``).
 
 Every text file may hold blank lines and ``#`` comments (from ``#`` to the end of the line).
-``events.txt`` is parsed at C speed by ``np.loadtxt``; only when that fails is it scanned
-again line by line, to name the first bad line and say how to fix it.
+Events files are parsed a block of lines at a time at C speed by ``np.loadtxt``; only a block
+that fails is scanned again line by line, to name the first bad line and say how to fix it.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from spatialseg.events import EventStream, normalise_polarity
+from spatialseg.io._decode import Block
 from spatialseg.recording import Camera
 
 __all__ = [
     "data_lines",
     "read_calib",
-    "read_events_txt",
     "read_sensor",
     "read_timed_paths",
+    "txt_blocks",
     "write_events_txt",
     "write_lines",
 ]
 
 #: Events formatted per ``write`` call when writing ``events.txt`` (bounds the memory used).
 _WRITE_CHUNK = 1_000_000
+#: Most lines parsed per block when reading (a list of Python strings: bounds its memory).
+_READ_LINES = 1 << 16
+
+
+def _numbered(lines: Iterable[str], first: int) -> Iterator[tuple[int, str]]:
+    """``(line number, text)`` of the non-blank ``lines``, numbered from ``first``, comments cut."""
+    for number, line in enumerate(lines, start=first):
+        text = line.split("#", 1)[0].strip()
+        if text:
+            yield number, text
 
 
 def data_lines(path: Path) -> Iterator[tuple[int, str]]:
     """Yield ``(line number, text)`` of non-blank lines, ``#`` comments cut, bad bytes as U+FFFD."""
     with path.open(encoding="utf-8", errors="replace") as f:
-        for number, line in enumerate(f, start=1):
-            text = line.split("#", 1)[0].strip()
-            if text:
-                yield number, text
+        yield from _numbered(f, 1)
 
 
 def read_timed_paths(path: Path) -> list[tuple[int, float, str]]:
@@ -115,23 +124,6 @@ def write_lines(path: Path, lines: list[str]) -> None:
         f.writelines(line + "\n" for line in lines)
 
 
-def read_events_txt(path: Path, width: int, height: int) -> EventStream:
-    """The events of a ``t x y p`` file, parsed at C speed; on failure, the bad line is named."""
-    try:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", "loadtxt: input contained no data")
-            table = np.loadtxt(path, dtype=np.float64, comments="#", ndmin=2, encoding="utf-8")
-        if table.size == 0:
-            table = np.empty((0, 4))
-        if table.shape[1] != 4:
-            raise ValueError(f"expected 4 columns 't x y p', got {table.shape[1]}")
-        t, x, y, p = table.T
-        return EventStream(x, y, t, normalise_polarity(p, str(path)), width, height, str(path))
-    except ValueError as exc:  # includes UnicodeDecodeError
-        _find_bad_event_line(path, width, height)
-        raise ValueError(f"{path}: {exc}") from exc
-
-
 def _parse_event_line(
     where: str, fields: list[str], width: int, height: int
 ) -> tuple[float, float]:
@@ -160,16 +152,22 @@ def _parse_event_line(
     return t, p
 
 
-def _find_bad_event_line(path: Path, width: int, height: int) -> None:
-    """Scan ``events.txt`` line by line and raise a ValueError naming the first bad line."""
-    previous_t = -math.inf
-    negative: tuple[float, int] | None = None  # first polarity other than 1, and its line
-    for number, text in data_lines(path):
+def _name_bad_line(
+    path: Path,
+    lines: list[str],
+    first: int,
+    size: tuple[int, int],
+    previous: float,
+    negative: tuple[float, int] | None,
+) -> None:
+    """Raise a ValueError naming the first bad ``t x y p`` line of ``lines`` (numbered from
+    ``first``), given the time and polarity convention of the lines before them."""
+    for number, text in _numbered(lines, first):
         where = f"{path} line {number}"
-        t, p = _parse_event_line(where, text.split(), width, height)
-        if t < previous_t:
+        t, p = _parse_event_line(where, text.split(), *size)
+        if t < previous:
             raise ValueError(
-                f"{where}: timestamps not sorted ({t!r} < {previous_t!r}); sort the file by time"
+                f"{where}: timestamps not sorted ({t!r} < {previous!r}); sort the file by time"
             )
         if p != 1.0:
             if negative is None:
@@ -179,7 +177,44 @@ def _find_bad_event_line(path: Path, width: int, height: int) -> None:
                     f"{where}: polarity {p:g} but line {negative[1]} has {negative[0]:g}; "
                     "use 0/1 or -1/+1, not a mix"
                 )
-        previous_t = t
+        previous = t
+
+
+def _table(lines: list[str]) -> np.ndarray:
+    """The ``(N, 4)`` numbers of ``t x y p`` lines, by ``np.loadtxt`` (C speed)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "loadtxt: input contained no data")
+        table = np.loadtxt(lines, comments="#", ndmin=2)
+    if table.size == 0:
+        return np.empty((0, 4))
+    if table.shape[1] != 4:
+        raise ValueError(f"expected 4 columns 't x y p', got {table.shape[1]}")
+    return table
+
+
+def txt_blocks(path: Path, size: tuple[int, int], block_events: int) -> Iterator[Block]:
+    """The events of a ``t x y p`` file, ``block_events`` lines (at most ``_READ_LINES``) at a
+    time, each block checked; a bad block is scanned line by line to name its bad line."""
+    negative: tuple[float, int] | None = None  # the first polarity other than 1, and its line
+    previous, first = -math.inf, 1
+    with path.open(encoding="utf-8", errors="replace") as f:
+        while lines := list(itertools.islice(f, min(block_events, _READ_LINES))):
+            try:
+                t, x, y, p = _table(lines).T
+                events = EventStream(x, y, t, normalise_polarity(p, str(path)), *size, str(path))
+                other = np.flatnonzero(p != 1)
+                if t.size and t[0] < previous:
+                    raise ValueError("timestamps not sorted")
+                if other.size and negative is not None and p[other[0]] != negative[0]:
+                    raise ValueError("polarity 0/1 and -1/+1 mixed")
+            except ValueError as exc:
+                _name_bad_line(path, lines, first, size, previous, negative)
+                raise ValueError(f"{path} lines {first}..{first + len(lines) - 1}: {exc}") from None
+            if other.size and negative is None:
+                line = next(itertools.islice(_numbered(lines, first), int(other[0]), None))[0]
+                negative = (float(p[other[0]]), line)
+            previous, first = (float(t[-1]) if t.size else previous), first + len(lines)
+            yield Block(events.t, events.x, events.y, events.p)
 
 
 def write_events_txt(events: EventStream, path: Path) -> None:
