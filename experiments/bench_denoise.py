@@ -22,6 +22,7 @@ from omegaconf import OmegaConf
 
 from spatialseg.config import conf_dir
 from spatialseg.denoise import denoise_mask
+from spatialseg.settings import Settings
 from spatialseg.simulate import simulate_scene
 
 WIDTH, HEIGHT = 346, 260
@@ -71,8 +72,8 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--out", type=Path, default=Path("outputs/bench_denoise.json"))
     args = parser.parse_args()
-    base = OmegaConf.load(conf_dir() / "config.yaml").denoise
-    r, w = int(base.radius), float(base.window)
+    base = Settings().denoise
+    r, w = base.radius, base.window
     settings = [(r, w), (r, w / 10), (r, w * 10), (r + 1, w)]
     speeds = [speed(args.speed_events, radius, w, args.repeat) for radius in (r, r + 1)]
     print(f"{'events':>10} {'radius':>6} {'seconds':>8} {'Mevents/s':>9}")

@@ -68,6 +68,7 @@ from spatialseg import points, read
 from spatialseg.config import conf_dir, group_options, simulated_scenes
 from spatialseg.depth import with_configured_depth
 from spatialseg.recording import Recording
+from spatialseg.settings import Settings, settings_from
 
 #: The sensor keys scaled for dense windows (conf/scene/*.yaml ``sensor``).
 SCALED_SENSOR_KEYS = ("threshold_mean", "threshold_std", "threshold_min", "refractory")
@@ -208,7 +209,7 @@ def create_store(uri: str) -> float:
 
 
 def pass_seconds(
-    recording: Recording, cfg: Mapping[str, Any], calls: int = PASS_CALLS
+    recording: Recording, settings: Settings, calls: int = PASS_CALLS
 ) -> tuple[float, int]:
     """Time (s) of one fused objective+gradient pass over the recording's fitted events,
     and their count: per window alone, as the pipeline builds its objective, the median of
@@ -220,13 +221,13 @@ def pass_seconds(
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
     total, events = 0.0, 0
-    reach = float(cfg["clustering"]["max_displacement"])
-    cap = points.depth_change_cap(cfg["clustering"])
+    reach = settings.clustering.max_displacement
+    cap = settings.clustering.max_depth_change
     try:
         for _, window, _ in recording.spans(0):
-            prepared = points.prepare(window, cfg)
-            t_ref = points.reference_time(prepared.t, cfg["volume"]["t_ref"])
-            volume = points.window_objective(prepared, t_ref, cfg).inner
+            prepared = points.prepare(window, settings)
+            t_ref = points.reference_time(prepared.t, settings.volume.t_ref)
+            volume = points.window_objective(prepared, t_ref, settings).inner
             volume.set_weights(np.ones(volume.n_events))
             bounds = points.search_bounds(prepared, reach, cap)
             theta = points.spatial_velocities(0.5 * bounds[None, :, 1])[0]
@@ -413,7 +414,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         nargs="+",
         default=[DEFAULT],
         metavar="NAME",
-        help=f"conf/optimizer names ('{DEFAULT}': the config's), each optionally with "
+        help=f"optimiser preset names ('{DEFAULT}': the config's), each optionally with "
         "':override,override'; the first is the ratio base",
     )
     parser.add_argument(
@@ -456,8 +457,8 @@ def bench_recording(
             tracked.append(_segment(overrides, run / f"{i}_mlflow", args.timeout, tracking_uri))
         extra = optimizer.partition(":")[2]
         if extra not in passes:
-            cfg = compose_config(*overrides)
-            passes[extra] = pass_seconds(with_configured_depth(recording, cfg), cfg)
+            settings = settings_from(compose_config(*overrides))
+            passes[extra] = pass_seconds(with_configured_depth(recording, settings), settings)
         pass_s, pass_events = passes[extra]
         row: dict[str, Any] = {
             "scene": scene,

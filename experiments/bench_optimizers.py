@@ -4,8 +4,8 @@
     python experiments/bench_optimizers.py --seeds 10 --max-evals 500 \\
         --record tests/optimizers_recorded.json                  # the conformance thresholds
 
-Each config is a ``conf/optimizer/NAME.yaml`` built with ``hydra.utils.instantiate``, exactly
-as ``optimizer=NAME`` builds it. Every run starts at random (x0=None) with the analytic
+Each config is an optimiser preset (``optimizers.preset(NAME)``), as ``optimizer=NAME``
+builds it. Every run starts at random (x0=None) with the analytic
 gradient and the vectorised objective given. BLAS is limited to one thread so that times
 measure the optimiser rather than thread contention on small matrices.
 """
@@ -23,9 +23,8 @@ import platform
 from pathlib import Path
 
 import numpy as np
-from hydra.utils import instantiate
-from omegaconf import OmegaConf
 
+import optimizers
 from optimizers.benchmark import (
     SUCCESS_TOLERANCE,
     RunSummary,
@@ -33,12 +32,11 @@ from optimizers.benchmark import (
     centre_bias,
     run_seeds,
 )
-from spatialseg.config import conf_dir, group_options
 
 
 def run_config(name: str, seeds: list[int], max_evals: int, dim: int) -> dict[str, RunSummary]:
     """Summaries of one config on every test function."""
-    optimizer = instantiate(OmegaConf.load(conf_dir() / "optimizer" / f"{name}.yaml"))
+    optimizer = optimizers.preset(name)
     return {f.name: run_seeds(optimizer, f, seeds, max_evals) for f in benchmark_functions(dim)}
 
 
@@ -89,7 +87,7 @@ def main() -> None:
     args = parser.parse_args()
     seeds = list(range(args.seeds))
     results = {}
-    for name in args.configs or group_options("optimizer"):
+    for name in args.configs or optimizers.preset_names():
         results[name] = run_config(name, seeds, args.max_evals, args.dim)
         print(f"done {name}", flush=True)
     print(

@@ -30,6 +30,7 @@ from scipy.optimize import minimize
 
 from spatialseg.points import ModelEvaluator, prepare, reference_time, window_objective
 from spatialseg.scenes import load_scene
+from spatialseg.settings import settings_from
 from spatialseg.simulate.render import STATIC_SCENE
 
 #: Multiples of the true velocity at which the contrast is reported.
@@ -54,8 +55,10 @@ def static_objective(
     rec = load_scene(cfg["scene"], seed=seed, window_events=events)
     if STATIC_SCENE not in rec.ground_truth.motions:
         raise ValueError(f"scene {scene!r} has a static camera; choose a moving-camera scene")
-    prepared = prepare(rec, cfg)
-    objective = window_objective(prepared, reference_time(prepared.t, cfg["volume"]["t_ref"]), cfg)
+    settings = settings_from(cfg)
+    prepared = prepare(rec, settings)
+    t_ref = reference_time(prepared.t, settings.volume.t_ref)
+    objective = window_objective(prepared, t_ref, settings)
     static = rec.ground_truth.labels[prepared.valid] == STATIC_SCENE
     objective.set_weights(static.astype(np.float64))
     duration = float(prepared.t.max() - prepared.t.min())

@@ -117,9 +117,9 @@ def run_scene(task: tuple[str, int, list[str], dict, Path | None]) -> list[dict[
             f"model={model}", f"n_clusters={drawn.n_motions}", f"seed={seed}",
             *split_overrides(extra),
         )  # fmt: skip
-        check_config(cfg)
+        settings = check_config(cfg)
         start = time.perf_counter()
-        used, seg = segment_loaded(recording, cfg, instantiate(cfg["optimizer"]), seed=seed)
+        used, seg = segment_loaded(recording, settings, instantiate(cfg["optimizer"]), seed=seed)
         seconds = time.perf_counter() - start
         metrics = score(used, seg, model == "spatial")
         rows.append(

@@ -36,6 +36,7 @@ from spatialseg.figures import paper_figure, save_figure, warped_images
 from spatialseg.plots import cluster_image, event_image
 from spatialseg.points import prepare
 from spatialseg.scenes import load_scene
+from spatialseg.settings import settings_from
 from spatialseg.tracking import JOBS_DIR, PARENT_FILE, tracking_uri
 
 #: The paper's figure number per scene; other scenes get ``figure_<scene>.png``.
@@ -117,10 +118,11 @@ def scene_figure(scene: str, job: dict[str, Any]) -> Any:
     )
     # The run's own preparation (denoising, depth source), so labels.npy lines up, and its
     # first window's span (the window with its window.context neighbours), as clustered.
-    recording = with_configured_depth(recording, cfg)
-    index, span, inner = next(iter(recording.spans(int(cfg["window"]["context"]))))
+    settings = settings_from(cfg)
+    recording = with_configured_depth(recording, settings)
+    index, span, inner = next(iter(recording.spans(settings.window.context)))
     window = span.select(inner)
-    prepared = prepare(span, cfg)
+    prepared = prepare(span, settings)
     first = result["windows"][0]
     if list(prepared.grid.shape) != list(first["grid_shape"]):
         raise FigureError(

@@ -8,7 +8,7 @@ For each scene and seed: simulate the window (seeded), ``prepare`` and ``initial
 with the default configuration, and build the initial memberships (``initial_memberships``
 with the default mode and confidence). Then for each motion flow j (cluster 0 and 1), with
 the memberships fixed to column j, every optimiser of ``OPTIMIZERS`` (hyperparameters from
-``conf/optimizer/NAME.yaml``) maximises the flow's contrast (variance of the warped volume)
+``optimizers.preset(NAME)``) maximises the flow's contrast (variance of the warped volume)
 from the SAME start, the initialisation's theta_j clipped into the box, inside the SAME
 search box (``search_bounds``) with the SAME evaluation budget (analytic gradient and
 ``batch_fun`` given, as in the clustering loop); the optimiser seed is the run seed.
@@ -58,17 +58,16 @@ from hydra.utils import instantiate
 from matplotlib.figure import Figure
 
 from spatialseg.clustering import initial_memberships
-from spatialseg.objectives import make_objective
 from spatialseg.points import (
     ModelEvaluator,
-    depth_change_cap,
     prepare,
     reference_time,
     search_bounds,
+    window_objective,
 )
 from spatialseg.scenes import load_scene
+from spatialseg.settings import settings_from
 from spatialseg.starts import initialise
-from spatialseg.volume import VolumeObjective
 
 OPTIMIZERS = [
     "ssa_ga",
@@ -140,23 +139,21 @@ def run_scene_seed(
     )
     rec = load_scene(cfg["scene"], seed=seed, window_events=events)
     window = next(iter(rec.windows()))[1]
-    prepared = prepare(window, cfg)
-    ccfg = cfg["clustering"]
-    bounds = search_bounds(prepared, float(ccfg["max_displacement"]), depth_change_cap(ccfg))
-    init = initialise(window, prepared, cfg, N_FLOWS, bounds, seed=seed)
+    settings = settings_from(cfg)
+    prepared = prepare(window, settings)
+    clustering = settings.clustering
+    bounds = search_bounds(prepared, clustering.max_displacement, clustering.max_depth_change)
+    init = initialise(window, prepared, settings, N_FLOWS, bounds, seed=seed)
     p = initial_memberships(
         prepared.points,
         prepared.grid.voxel_size,
         init.labels,
         N_FLOWS,
-        mode=ccfg["init_memberships"],
-        confidence=float(ccfg["init_confidence"]),
+        mode=clustering.init_memberships,
+        confidence=clustering.init_confidence,
     )
-    t_ref = reference_time(prepared.t, cfg["volume"]["t_ref"])
-    volume = VolumeObjective(
-        prepared.points, prepared.t - t_ref, prepared.grid, make_objective(**cfg["objective"])
-    )
-    evaluator = ModelEvaluator(volume, prepared.dim)
+    t_ref = reference_time(prepared.t, settings.volume.t_ref)
+    evaluator = window_objective(prepared, t_ref, settings)
     rows = []
     for j in range(N_FLOWS):
         evaluator.set_weights(p[:, j])

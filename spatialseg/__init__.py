@@ -1,7 +1,8 @@
 """spatialseg: segment an event camera's stream by 3-D motion (EDPA + volume of warped events).
 
 The Python API (:mod:`spatialseg.api`): :func:`simulate` or :func:`read` a Recording,
-:func:`segment` it (or :class:`MotionSegmenter`), :func:`write` it.
+:func:`segment` it (or :class:`MotionSegmenter`), :func:`write` it; :class:`Settings` holds
+every setting of the method with its default (:mod:`spatialseg.settings`).
 """
 
 from importlib import import_module
@@ -9,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from spatialseg.events import EventStream
 from spatialseg.recording import Camera, DepthMap, GroundTruth, Keyframe, Recording
+from spatialseg.settings import Settings, settings_from
 
 if TYPE_CHECKING:
     from spatialseg.api import MotionSegmenter, Segmentation, read, segment, simulate, write
@@ -22,8 +24,10 @@ __all__ = [
     "MotionSegmenter",
     "Recording",
     "Segmentation",
+    "Settings",
     "read",
     "segment",
+    "settings_from",
     "simulate",
     "write",
 ]

@@ -13,7 +13,7 @@ that config as a mapping (``clustering={"max_iterations": 5}``) or a dotted key
 by name (``model="planar"``, ``depth="constant"``, ``preset="fast"``). Every setting is
 checked before any work starts: a wrong key or value raises one ``ValueError`` that names
 the setting and the fix. Only this module and :mod:`spatialseg.config` know the config
-files; the algorithm modules read plain mappings.
+files; the algorithm reads the typed :class:`~spatialseg.settings.Settings` built from it.
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ from spatialseg.config import (
 )
 from spatialseg.depth import make_depth_source
 from spatialseg.recording import Camera, Recording
+from spatialseg.settings import Settings
 from spatialseg.simulate import simulator
 from spatialseg.window import WindowResult, check_config
 
@@ -221,7 +222,7 @@ def _overrides(choices: Mapping[str, str], optimizer: str | None) -> list[str]:
 
 
 def _optimizer_name(optimizer: Any, flat: Mapping[str, Any]) -> str | None:
-    """``optimizer`` checked: a ``conf/optimizer`` preset name (returned), or an object with
+    """``optimizer`` checked: an optimiser preset name (returned), or an object with
     ``maximize`` (None; its hyperparameters are its own, not ``optimizer.*`` settings)."""
     if isinstance(optimizer, str):
         return check_option("optimizer", optimizer, "optimizer")
@@ -241,10 +242,11 @@ def _optimizer_name(optimizer: Any, flat: Mapping[str, Any]) -> str | None:
 
 def _configure(
     n_clusters: int | str, seed: int, optimizer: Any, settings: Mapping[str, Any]
-) -> tuple[dict[str, Any], Any]:
-    """The run config and the optimiser for :func:`segment`'s arguments, every value
-    checked before any work (the command line's checks: :func:`spatialseg.window.check_config`,
-    the depth source, the optimiser's hyperparameters)."""
+) -> tuple[dict[str, Any], Settings, Any]:
+    """The run config, the method's settings and the optimiser for :func:`segment`'s
+    arguments, every value checked before any work (the command line's checks:
+    :func:`spatialseg.window.check_config`, the depth source, the optimiser's
+    hyperparameters)."""
     integer_setting(seed, "seed", 0)
     flat = _flatten(settings)
     name = _optimizer_name(optimizer, flat)
@@ -259,12 +261,12 @@ def _configure(
             )
         _assign(sections, key, value, known_only=True)
     cfg.update(sections, n_clusters=n_clusters, seed=seed)
-    check_config(cfg)
-    make_depth_source(cfg["depth"])
+    checked = check_config(cfg)
+    make_depth_source(checked.depth.as_config())
     if name is None:
         cfg["optimizer"] = {"_target_": f"{type(optimizer).__module__}.{type(optimizer).__name__}"}
-        return cfg, optimizer
-    return cfg, build_optimizer(cfg)
+        return cfg, checked, optimizer
+    return cfg, checked, build_optimizer(cfg)
 
 
 def _check_recording(recording: Any, cfg: Mapping[str, Any]) -> Recording:
@@ -296,20 +298,20 @@ def segment(
     """Segment ``recording``'s events by 3-D motion into ``n_clusters`` motions per window
     (``"auto"``: found per window), object ids linked across windows.
 
-    ``optimizer``: a ``conf/optimizer`` preset name (its hyperparameters as settings,
-    ``**{"optimizer.population": 30}``) or an ``optimizers.Optimizer``. ``settings``: the
+    ``optimizer``: an optimiser preset name (``optimizers.preset``; its hyperparameters as
+    settings, ``**{"optimizer.population": 30}``) or an ``optimizers.Optimizer``. ``settings``: the
     run config's sections (window, edpa, denoise, volume, init, clustering, model,
     objective, depth, optimizer), each as a mapping (``clustering={"max_iterations": 5}``)
     or by dotted key (``**{"clustering.max_iterations": 5}``), and config groups by name
     (``model="planar"``, ``depth="constant"``, ``preset="fast"``); defaults are
-    ``conf/config.yaml``'s. A recording without depth maps needs a depth source
+    :class:`spatialseg.Settings`'. A recording without depth maps needs a depth source
     (``depth="constant"``). A wrong setting raises ValueError before any work starts.
     """
     start = time.perf_counter()
-    cfg, solver = _configure(n_clusters, seed, optimizer, settings)
+    cfg, checked, solver = _configure(n_clusters, seed, optimizer, settings)
     recording = _check_recording(recording, cfg)
     begin = time.perf_counter()
-    used, result = pipeline.segment_loaded(recording, cfg, solver, seed=int(seed))
+    used, result = pipeline.segment_loaded(recording, checked, solver, seed=int(seed))
     end = time.perf_counter()
     timings = {"setup": begin - start, "segment": end - begin, "total": end - start}
     return _segmentation(used, result, cfg, timings)

@@ -43,6 +43,7 @@ from spatialseg.interrupts import interruption, raise_pending, stop_on_signals
 from spatialseg.progress import progress_bar
 
 if TYPE_CHECKING:
+    from spatialseg.settings import Settings
     from spatialseg.tracking import LiveRun
     from spatialseg.window import WindowResult
 
@@ -163,16 +164,16 @@ def _run_tracked(cfg: DictConfig, out_dir: Path, tracked: LiveRun) -> dict[str, 
 
     validate_run(cfg)
     plain = OmegaConf.to_container(cfg, resolve=True)
-    check_config(plain)
+    settings = check_config(plain)
     _check_output(plain["output"])
     start = time.perf_counter()
     if cfg.scene.get("stream"):
-        return run_stream(cfg, plain, out_dir, tracked)
+        return run_stream(cfg, plain, settings, out_dir, tracked)
     recording = load_scene(
         cfg.scene,
         seed=int(cfg.seed),
-        window_events=int(cfg.window.events),
-        windows=cfg.window.count,
+        window_events=settings.window.events,
+        windows=settings.window.count,
     )
     timings = {"load": time.perf_counter() - start}
     optimizer = build_optimizer(cfg)
@@ -187,7 +188,7 @@ def _run_tracked(cfg: DictConfig, out_dir: Path, tracked: LiveRun) -> dict[str, 
 
     recording, seg = segment_loaded(
         recording,
-        plain,
+        settings,
         optimizer,
         seed=int(cfg.seed),
         progress=bool(cfg.output.progress),
@@ -213,11 +214,12 @@ def _real_time(span: tuple[float, float], wall: float) -> dict[str, float]:
 
 
 def run_stream(
-    cfg: DictConfig, plain: dict[str, Any], out_dir: Path, tracked: LiveRun
+    cfg: DictConfig, plain: dict[str, Any], settings: Settings, out_dir: Path, tracked: LiveRun
 ) -> dict[str, Any]:
     """``scene.stream=true``: read, segment and write the file window by window, holding one
     window in memory; the outputs are those of any run except the figures and metrics. Each
-    window's metrics go to MLflow as it ends; the end reports the real-time factor."""
+    window's metrics go to MLflow as it ends; the end reports the real-time factor. ``plain``
+    is the run config (the outputs record it), ``settings`` the method's."""
     from spatialseg.pipeline import segment_loaded
     from spatialseg.results import (
         ArrayStream,
@@ -231,10 +233,10 @@ def run_stream(
     from spatialseg.segmentation_h5 import SegmentationH5
 
     start = time.perf_counter()
-    if plain["depth"]["name"] in ("recording", "onnx"):
+    if settings.depth.name in ("recording", "onnx"):
         raise ValueError(
             f"scene.stream=true makes depth maps per window without images: use "
-            f"depth=constant or depth=ground_plane, not depth={plain['depth']['name']}"
+            f"depth=constant or depth=ground_plane, not depth={settings.depth.name}"
         )
     out_dir.mkdir(parents=True, exist_ok=True)
     labels_path, probabilities_path, h5_path, result_path = data_paths(out_dir)
@@ -246,12 +248,12 @@ def run_stream(
     ):
         optimizer, windows, handover = build_optimizer(cfg), [], None
         span = (np.inf, -np.inf)  # the first and last event times seen
-        stream = stream_scene(plain["scene"], window_events=int(cfg.window.events))
+        stream = stream_scene(plain["scene"], window_events=settings.window.events)
         for w, window in enumerate(stream):
             seed = int(np.random.default_rng([int(cfg.seed), w]).integers(2**31 - 1))
             _, seg = segment_loaded(
                 window,
-                plain,
+                settings,
                 optimizer,
                 seed=seed,
                 handover=handover,

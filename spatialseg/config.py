@@ -28,8 +28,11 @@ from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
+from hydra.plugins.config_source import ConfigLoadError
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+import optimizers
+from optimizers import preset_hyperparameters
 from spatialseg.settings import SECTIONS, default_tree
 
 __all__ = [
@@ -54,9 +57,15 @@ BASE_CONFIG = "spatialseg_defaults"
 
 
 def register_defaults() -> None:
-    """Store the method's defaults (:func:`spatialseg.settings.default_tree`) in Hydra's
-    ConfigStore as :data:`BASE_CONFIG`, before Hydra composes ``conf/config.yaml``."""
-    ConfigStore.instance().store(name=BASE_CONFIG, node=default_tree())
+    """Store in Hydra's ConfigStore, before Hydra composes ``conf/config.yaml``: the
+    method's defaults (:func:`spatialseg.settings.default_tree`) as :data:`BASE_CONFIG`, and
+    each optimiser preset (:func:`optimizers.preset_names`) as an option of the ``optimizer``
+    group holding all its hyperparameters (``optimizer=pso optimizer.swarm_size=30``)."""
+    store = ConfigStore.instance()
+    store.store(name=BASE_CONFIG, node=default_tree())
+    for name in optimizers.preset_names():
+        node = {"_target_": "optimizers.preset", "name": name}
+        store.store(group="optimizer", name=name, node=node | preset_hyperparameters(name))
 
 
 class ConfigError(ValueError):
@@ -101,15 +110,24 @@ def _entries(folder: Traversable) -> list[Traversable]:
 
 def group_options(group: str, roots: Sequence[Traversable] | None = None) -> list[str]:
     """Sorted option names of a config group: the YAML files in ``<root>/<group>/`` of every
-    config directory in ``roots`` (default: ``conf/`` alone)."""
-    return sorted(
-        {
-            entry.name.removesuffix(".yaml")
-            for root in roots or config_roots()
-            for entry in _entries(root / group)
-            if entry.name.endswith(".yaml") and entry.is_file()
-        }
-    )
+    config directory in ``roots`` (default: ``conf/`` alone), and the options registered in
+    code (:func:`register_defaults`: the optimiser presets)."""
+    files_ = {
+        entry.name.removesuffix(".yaml")
+        for root in roots or config_roots()
+        for entry in _entries(root / group)
+        if entry.name.endswith(".yaml") and entry.is_file()
+    }
+    return sorted(files_ | _stored_options(group))
+
+
+def _stored_options(group: str) -> set[str]:
+    """The options of ``group`` registered in Hydra's ConfigStore."""
+    try:
+        names = ConfigStore.instance().list(group)
+    except OSError:  # Hydra's answer for a group nobody stored
+        return set()
+    return {name.removesuffix(".yaml") for name in names if name.endswith(".yaml")}
 
 
 def check_option(group: str, name: Any, key: str) -> str:
@@ -162,18 +180,23 @@ def build_optimizer(cfg: Mapping[str, Any]) -> Any:
 
 
 def _groups(roots: Sequence[Traversable]) -> list[str]:
-    """The config groups of ``roots`` (``hydra/`` holds Hydra's own launcher configs)."""
+    """The config groups of ``roots`` and those registered in code (``hydra/`` holds Hydra's
+    own launcher configs)."""
     names = {e.name for root in roots for e in _entries(root) if e.is_dir()}
-    return sorted(names - {"hydra"})
+    stored = {n for n in ConfigStore.instance().list("") if not n.endswith(".yaml")}
+    return sorted((names | stored) - {"hydra"})
 
 
 def _load(roots: Sequence[Traversable], relative: str) -> Any:
-    """The YAML file ``relative`` from the first config directory holding it, as Hydra picks."""
+    """The YAML file ``relative`` from the first config directory holding it, as Hydra picks,
+    else the config registered under that path in code (an optimiser preset)."""
     for root in roots:
         found = root.joinpath(*relative.split("/"))
         if found.is_file():
             with found.open(encoding="utf-8") as stream:
                 return OmegaConf.load(stream)
+    with contextlib.suppress(ConfigLoadError):
+        return ConfigStore.instance().load(relative).node
     raise ConfigError(f"no config file {relative} in {', '.join(str(r) for r in roots)}")
 
 
@@ -252,4 +275,4 @@ def validate_run(cfg: DictConfig, primary: str = "config.yaml") -> None:
     validate_config(cfg, runtime.choices, primary, config_roots(runtime.config_sources))
 
 
-register_defaults()  # last: the defaults' checks look optimiser presets up with check_option
+register_defaults()

@@ -27,6 +27,7 @@ import numpy as np
 
 from spatialseg.checks import is_integer, optional_positive
 from spatialseg.recording import Camera, DepthMap, Keyframe, Recording, event_boundaries
+from spatialseg.settings import Settings
 
 __all__ = [
     "DEPTH_SOURCES",
@@ -475,11 +476,8 @@ def attach_depth(recording: Recording, source: DepthSource, *, window_events: in
     return replace(recording, depth_maps=maps)
 
 
-def with_configured_depth(recording: Recording, cfg: Mapping[str, Any]) -> Recording:
-    """:func:`attach_depth` with the ``depth`` config (``window.events`` sets the window
-    length for sources that read no images); a missing section means ``depth=recording``."""
-    source = make_depth_source(cfg.get("depth") or {"name": "recording"})
-    window = cfg.get("window") or {}
-    return attach_depth(
-        recording, source, window_events=window.get("events", len(recording.events))
-    )
+def with_configured_depth(recording: Recording, settings: Settings) -> Recording:
+    """:func:`attach_depth` with the ``depth`` settings (``window.events`` sets the window
+    length for sources that read no images)."""
+    source = make_depth_source(settings.depth.as_config())
+    return attach_depth(recording, source, window_events=settings.window.events)

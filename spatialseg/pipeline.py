@@ -18,10 +18,11 @@ import numpy as np
 
 from spatialseg.checks import plural
 from spatialseg.compilation import announce_compilation
-from spatialseg.executors import check_parallel, map_in_order
+from spatialseg.executors import map_in_order
 from spatialseg.identities import Boundary, boundary, link_clusters
 from spatialseg.progress import progress_bar
 from spatialseg.recording import Recording, check_depth_maps, check_event_times
+from spatialseg.settings import Settings, settings_from
 from spatialseg.window import WindowResult, segment_window
 
 __all__ = [
@@ -64,7 +65,7 @@ class SegmentationResult:
 
 def segment_recording(
     recording: Recording,
-    cfg: Mapping[str, Any],
+    settings: Settings | Mapping[str, Any],
     optimizer: Any,
     *,
     seed: int,
@@ -75,6 +76,7 @@ def segment_recording(
     on_window: Callable[[np.ndarray, WindowResult], None] | None = None,
 ) -> SegmentationResult:
     """Segment every window (each pair of consecutive depth maps); labels cover all events.
+    ``settings``: the method's (a mapping is read by :func:`~spatialseg.settings.settings_from`).
 
     ``progress`` (``output.progress``): an INFO line as each window ends and a DEBUG line
     per iteration (:func:`_window_name` names the window; ``first_window``: in a stream,
@@ -93,6 +95,7 @@ def segment_recording(
     ``handover`` continues a stream's previous chunk (None: a recording's start).
     Events outside every window (before the first or after the last depth map) are -1.
     """
+    settings = settings_from(settings)
     n = len(recording.events)
     labels = np.full(n, -1, dtype=np.int64)
     results, indices = [], []
@@ -101,9 +104,9 @@ def segment_recording(
     next_id = 0 if edge is None else edge.next_id
     xy = np.column_stack([recording.events.x, recording.events.y])
     windows = _segmented_windows(
-        recording.spans(cfg["window"]["context"]),
+        recording.spans(settings.window.context),
         len(recording.depth_maps) - 1,
-        cfg,
+        settings,
         optimizer,
         seed=seed,
         previous=previous,
@@ -136,7 +139,7 @@ class WindowTask:
     independent)."""
 
     span: Recording
-    cfg: Mapping[str, Any]
+    settings: Settings
     optimizer: Any
     seed: int
 
@@ -145,14 +148,14 @@ def _run_task(task: WindowTask) -> tuple[WindowResult, float]:
     """The task's window segmented, and the seconds it took (a module-level function, so a
     process pool can pickle it)."""
     start = time.perf_counter()
-    result = segment_window(task.span, task.cfg, task.optimizer, seed=task.seed)
+    result = segment_window(task.span, task.settings, task.optimizer, seed=task.seed)
     return result, time.perf_counter() - start
 
 
 def _segmented_windows(
     spans: Iterator[tuple[np.ndarray, Recording, np.ndarray]],
     count: int,
-    cfg: Mapping[str, Any],
+    settings: Settings,
     optimizer: Any,
     *,
     seed: int,
@@ -168,17 +171,17 @@ def _segmented_windows(
     (:mod:`spatialseg.executors`; every span is then made up front). With ``progress``, an
     INFO line as each ends (``first_window`` not None: a stream's chunk, count unknown) and,
     on a terminal, a bar over two windows or more (:mod:`spatialseg.progress`)."""
-    engine, workers = check_parallel(cfg["window"]["parallel"], cfg["window"]["workers"])
+    engine, workers = settings.window.parallel, settings.window.workers
     seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=max(count, 1))
     total = count if first_window is None else None
     names = [_window_name((first_window or 0) + w, total) for w in range(count)]
     if engine == "none":
         hooks = names if progress else [None] * count  # DEBUG lines per iteration
-        done = _serial_windows(spans, cfg, optimizer, seeds, previous, on_iteration, hooks)
+        done = _serial_windows(spans, settings, optimizer, seeds, previous, on_iteration, hooks)
     else:
         spans = list(spans)
         tasks = [
-            WindowTask(span, cfg, optimizer, int(s))
+            WindowTask(span, settings, optimizer, int(s))
             for (_, span, _), s in zip(spans, seeds, strict=False)
         ]
         runs = map_in_order(_run_task, tasks, engine=engine, workers=workers)
@@ -193,7 +196,7 @@ def _segmented_windows(
 
 def _serial_windows(
     spans: Iterator[tuple[np.ndarray, Recording, np.ndarray]],
-    cfg: Mapping[str, Any],
+    settings: Settings,
     optimizer: Any,
     seeds: np.ndarray,
     previous: np.ndarray | None,
@@ -207,7 +210,7 @@ def _serial_windows(
         start = time.perf_counter()
         res = segment_window(
             span,
-            cfg,
+            settings,
             optimizer,
             seed=int(window_seed),
             on_iteration=on_iteration,
@@ -220,7 +223,7 @@ def _serial_windows(
 
 def segment_loaded(
     recording: Recording,
-    cfg: Mapping[str, Any],
+    settings: Settings | Mapping[str, Any],
     optimizer: Any,
     *,
     seed: int,
@@ -231,8 +234,9 @@ def segment_loaded(
     on_window: Callable[[np.ndarray, WindowResult], None] | None = None,
 ) -> tuple[Recording, SegmentationResult]:
     """A loaded recording through the ``depth`` source and :func:`segment_recording`
-    (``handover``: a stream's previous chunk; ``progress``, ``first_window``: its progress
-    lines); the result covers every input event. Also
+    (``settings``: the method's, a mapping read by :func:`~spatialseg.settings.settings_from`,
+    checked before any work; ``handover``: a stream's previous chunk; ``progress``,
+    ``first_window``: its progress lines); the result covers every input event. Also
     returns the recording the result describes: the input with the depth maps used.
 
     Every run (command line, :func:`spatialseg.segment`, experiments) comes through here,
@@ -242,13 +246,14 @@ def segment_loaded(
     (:func:`spatialseg.compilation.announce_compilation`)."""
     from spatialseg.depth import with_configured_depth
 
+    settings = settings_from(settings)
     check_event_times(recording)  # before a depth source spends work on the events
-    recording = with_configured_depth(recording, cfg)
+    recording = with_configured_depth(recording, settings)
     check_depth_maps(recording)
     with announce_compilation():
         seg = segment_recording(
             recording,
-            cfg,
+            settings,
             optimizer,
             seed=seed,
             on_iteration=on_iteration,

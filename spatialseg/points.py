@@ -7,28 +7,26 @@ the warp's reference time and :class:`ModelEvaluator`, one cluster's contrast of
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from spatialseg import edpa
-from spatialseg.checks import boolean_setting, is_integer, optional_positive
 from spatialseg.denoise import denoise_mask
 from spatialseg.grid import VoxelGrid, grid_around
 from spatialseg.objectives import make_objective
 from spatialseg.recording import Camera, Recording
-from spatialseg.volume import VolumeObjective, check_p_step_blur
+from spatialseg.settings import ClusteringSettings, DenoiseSettings, Settings, smoothing
+from spatialseg.volume import VolumeObjective
 
 __all__ = [
     "ModelEvaluator",
     "Prepared",
-    "depth_change_cap",
     "fit_support",
     "off_edge_events",
     "p_step_settings",
-    "p_step_sigmas",
     "planar_points",
     "prepare",
     "reference_time",
@@ -36,6 +34,7 @@ __all__ = [
     "search_bounds",
     "spatial_velocities",
     "volume_grid",
+    "volume_objective",
     "window_objective",
 ]
 
@@ -69,43 +68,43 @@ class Prepared:
         return self.valid if self.rest is None else self.valid | self.rest[2]
 
 
-def prepare(window: Recording, cfg: Mapping[str, Any]) -> Prepared:
+def prepare(window: Recording, settings: Settings) -> Prepared:
     """Lift the window's events into the model's space and build the voxel grid around the
     events the motions are fitted on (:func:`fit_support`);
     the other events with depth are kept aside (``Prepared.rest``) and labelled at the end."""
-    model, vol = cfg["model"], cfg["volume"]
+    vol, lifting = settings.volume, settings.edpa
     if len(window.events) == 0:
         raise ValueError(f"{window.name}: the window has no events; choose a longer window")
-    support = fit_support(window, cfg)
-    if model["name"] == "planar":
-        return planar_points(window, float(model["xy_scale"]), support)
+    support = fit_support(window, settings.denoise)
+    if settings.model.name == "planar":
+        return planar_points(window, settings.model.voxel_scale, support)
     lifted = edpa.lift(
         window,
-        unknown_depth=cfg["edpa"]["unknown_depth"],
-        fill_radius=int(cfg["edpa"]["fill_radius"]),
-        edge_ratio=cfg["edpa"]["edge_ratio"],
-        edge_radius=cfg["edpa"]["edge_radius"],
+        unknown_depth=lifting.unknown_depth,
+        fill_radius=lifting.fill_radius,
+        edge_ratio=lifting.edge_ratio,
+        edge_radius=lifting.edge_radius,
     )
     supported = support[lifted.valid]
     dense = edpa.dense_depth_bands(
-        lifted.points[supported, 2], gap=float(vol["depth_gap"]), min_share=vol["min_band_share"]
+        lifted.points[supported, 2], gap=vol.depth_gap, min_share=vol.min_band_share
     )
     fit = np.zeros(len(supported), dtype=bool)
     fit[np.flatnonzero(supported)[dense]] = True
     if not fit.any():
         fit[:] = True  # nothing supported: fit on every event with depth
     points = lifted.points[fit]
-    grid = volume_grid(points, window.camera, cfg)
+    grid = volume_grid(points, window.camera, settings)
     valid = lifted.valid.copy()
     valid[np.flatnonzero(valid)[~fit]] = False
     rest_valid = lifted.valid & ~valid
-    extent = _search_extent(lifted.points[supported], grid, float(vol["margin"]))
+    extent = _search_extent(lifted.points[supported], grid, vol.margin)
     on_edge = lifted.on_edge[lifted.valid][fit]
     rest = (lifted.points[~fit], lifted.t[~fit], rest_valid)
     return Prepared(points, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
 
 
-def fit_support(window: Recording, cfg: Mapping[str, Any]) -> np.ndarray:
+def fit_support(window: Recording, denoise: DenoiseSettings) -> np.ndarray:
     """The window's events the motions are fitted on (N,): with ``denoise.enabled``, those
     the background-activity filter supports (:func:`spatialseg.denoise.denoise_mask`), else
     all. The others are labelled at the end from the fitted motions.
@@ -114,10 +113,9 @@ def fit_support(window: Recording, cfg: Mapping[str, Any]) -> np.ndarray:
     it, stretches the grid and blurs every volume; 4.6 % of noise turned a three-object
     scene from 1.0 to 0.73. Dropping such events (the filter's usual use) loses the signal
     events it rejects too; leaving them out of the fit alone keeps their labels."""
-    den = cfg["denoise"]
     support = np.ones(len(window.events), dtype=bool)
-    if boolean_setting(den["enabled"], "denoise.enabled"):
-        support = denoise_mask(window.events, radius=den["radius"], window=den["window"])
+    if denoise.enabled:
+        support = denoise_mask(window.events, radius=denoise.radius, window=denoise.window)
         support |= not support.any()  # a window rejected whole (a few events): fit them all
     return support
 
@@ -140,7 +138,7 @@ def planar_points(
 
 
 def volume_grid(
-    points: np.ndarray, camera: Camera, cfg: Mapping[str, Any], coordinates: str | None = None
+    points: np.ndarray, camera: Camera, settings: Settings, coordinates: str | None = None
 ) -> VoxelGrid:
     """The spatial model's voxel grid around ``points`` in ``volume.coordinates`` (or
     ``coordinates``): ``image`` (pixels and inverse depth, default) or ``metric`` (metres).
@@ -150,19 +148,19 @@ def volume_grid(
     depth is sharpened by its expansion in the image, resolved to a pixel, instead of by
     its few depth bins only (``docs/volume.md`` has the measurements).
     """
-    vol = cfg["volume"]
-    coordinates = coordinates or str(vol["coordinates"])
+    vol = settings.volume
+    coordinates = coordinates or vol.coordinates
     size = edpa.voxel_size(
         points,
         camera,
-        xy_scale=float(cfg["model"]["xy_scale"]),
-        z_bins=int(vol["z_bins"]),
+        xy_scale=settings.model.voxel_scale,
+        z_bins=vol.z_bins,
         coordinates=coordinates,
     )
     projection = None
     if coordinates == "image":
         projection = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
-    return grid_around(points, size, float(vol["margin"]), int(vol["max_voxels"]), projection)
+    return grid_around(points, size, vol.margin, vol.max_voxels, projection)
 
 
 def _search_extent(all_points: np.ndarray, grid: VoxelGrid, margin: float) -> np.ndarray:
@@ -205,11 +203,6 @@ def search_bounds(
         depth = float(np.median(prepared.points[:, 2]))
         half[2] = min(half[2], max_depth_change * depth / duration)
     return np.column_stack([-half, half])
-
-
-def depth_change_cap(ccfg: Mapping[str, Any]) -> float | None:
-    """``clustering.max_depth_change``, validated: a positive number, or None for no cap."""
-    return optional_positive(ccfg["max_depth_change"], "clustering.max_depth_change")
 
 
 def reference_time(t: np.ndarray, mode: str) -> float:
@@ -289,27 +282,42 @@ class ModelEvaluator:
 def window_objective(
     prepared: Prepared,
     t_ref: float,
-    cfg: Mapping[str, Any],
+    settings: Settings,
     index: Any = slice(None),
     grid: VoxelGrid | None = None,
 ) -> ModelEvaluator:
     """The configured objective (one cluster's contrast, weights set by the caller) over the
-    window's events ``index`` (default all) on ``grid`` (default the window's), stored in
-    ``volume.dtype`` (float32 halves the memory per event, float64 is the more accurate)."""
-    volume = VolumeObjective(
+    window's events ``index`` (default all) on ``grid`` (default the window's)
+    (:func:`volume_objective`)."""
+    volume = volume_objective(
         prepared.points[index],
         prepared.t[index] - t_ref,
         prepared.grid if grid is None else grid,
-        make_objective(**cfg["objective"]),
-        dtype=str(cfg["volume"]["dtype"]),
+        settings,
     )
     return ModelEvaluator(volume, prepared.dim)
 
 
+def volume_objective(
+    points: np.ndarray, dt: np.ndarray, grid: VoxelGrid, settings: Settings
+) -> VolumeObjective:
+    """The volume of ``points`` warped over ``dt`` on ``grid``, judged by the configured
+    objective (``objective.name``, ``objective.blur_sigma``) and stored in ``volume.dtype``
+    (float32 halves the memory per event, float64 is the more accurate)."""
+    objective = settings.objective
+    return VolumeObjective(
+        points,
+        dt,
+        grid,
+        make_objective(name=objective.name, blur_sigma=objective.blur_sigma),
+        dtype=settings.volume.dtype,
+    )
+
+
 def p_step_settings(
-    ccfg: Mapping[str, Any], *, alone: bool
+    clustering: ClusteringSettings, *, alone: bool
 ) -> tuple[tuple[float, float, float], int]:
-    """The P-step's smoothing (x, y, depth voxels) and grid stride, checked:
+    """The P-step's smoothing (x, y, depth voxels) and grid stride:
     ``clustering.p_step_sigma`` and ``p_step_stride`` for a window clustered with neighbouring
     windows, ``clustering.p_step_alone`` for one clustered alone.
 
@@ -317,50 +325,25 @@ def p_step_settings(
     want the wider blur; the span wants the narrower one, which keeps the static scene's
     cluster off the events around a moving object (docs/method.md, "Defaults for a moving
     camera")."""
-    given, sigma_key = _p_step_option(ccfg, "sigma", alone=alone)
-    stride, stride_key = _p_step_option(ccfg, "stride", alone=alone)
-    if not is_integer(stride, 1):
-        raise ValueError(f"{stride_key} must be an integer >= 1, got {stride!r}")
-    sigmas = p_step_sigmas(given, sigma_key)
-    check_p_step_blur(sigmas[0], stride, given, (sigma_key, stride_key))
-    return sigmas, stride
-
-
-def p_step_sigmas(value: Any, key: str = "clustering.p_step_sigma") -> tuple[float, float, float]:
-    """``clustering.p_step_sigma`` (or the setting ``key``) as (x, y, depth) voxels: one number
-    for every axis, or a pair ``[image, depth]`` (x and y share the first)."""
-    if isinstance(value, int | float) and not isinstance(value, bool):
-        parts = [value]
-    elif isinstance(value, Sequence) and not isinstance(value, str):
-        parts = list(value)
-    else:
-        parts = []
-    numbers = all(isinstance(v, int | float) and not isinstance(v, bool) for v in parts)
-    sigmas = [float(v) for v in parts] if numbers else []
-    if len(sigmas) not in (1, 2) or not all(np.isfinite(v) and v >= 0 for v in sigmas):
-        raise ValueError(
-            f"{key} must be a number >= 0 or a pair [image, depth] of them (voxels), got {value!r}"
-        )
-    return (sigmas[0], sigmas[0], sigmas[-1])
-
-
-def _p_step_option(ccfg: Mapping[str, Any], name: str, *, alone: bool) -> tuple[Any, str]:
-    """The P-step setting ``name`` (``sigma``, ``stride`` or ``relabel_sigma``) and its key:
-    ``clustering.p_step_alone.NAME`` for a window clustered alone, else the top-level one."""
     if alone:
-        return ccfg["p_step_alone"][name], f"clustering.p_step_alone.{name}"
-    top = {"sigma": "p_step_sigma", "stride": "p_step_stride"}.get(name, name)
-    return ccfg[top], f"clustering.{top}"
+        own = clustering.p_step_alone
+        return smoothing(own.sigma, "clustering.p_step_alone.sigma"), own.stride
+    return smoothing(clustering.p_step_sigma, "clustering.p_step_sigma"), clustering.p_step_stride
 
 
-def relabel_sigmas(ccfg: Mapping[str, Any], *, alone: bool) -> tuple[float, float, float] | None:
+def relabel_sigmas(
+    clustering: ClusteringSettings, *, alone: bool
+) -> tuple[float, float, float] | None:
     """``clustering.relabel_sigma`` (``clustering.p_step_alone.relabel_sigma`` for a window
-    clustered alone) as (x, y, depth) voxels, or None (off), validated.
+    clustered alone) as (x, y, depth) voxels, or None (off).
 
     Decision: once the velocities are final (after the refit), one more P-step at them,
     smoothed less than the loop's, gives the labels. The loop needs its wider blur while
     velocities and memberships still move; at the final velocities a sharper response
     follows an object's outline more closely. A window alone holds a third of the events
     per voxel, and there it cost accuracy (docs/method.md, "Relabelling")."""
-    value, key = _p_step_option(ccfg, "relabel_sigma", alone=alone)
-    return None if value is None else p_step_sigmas(value, key)
+    if alone:
+        value, key = clustering.p_step_alone.relabel_sigma, "clustering.p_step_alone.relabel_sigma"
+    else:
+        value, key = clustering.relabel_sigma, "clustering.relabel_sigma"
+    return None if value is None else smoothing(value, key)

@@ -172,7 +172,7 @@ def run_summary(
         "n_clusters": cfg["n_clusters"],
         "model": cfg["model"]["name"],
         "objective": cfg["objective"]["name"],
-        "optimizer": cfg["optimizer"].get("_target_", ""),
+        "optimizer": cfg["optimizer"].get("name") or cfg["optimizer"].get("_target_", ""),
         "units": windows[0]["units"] if windows else None,  # the model's, in every window
         "objects": objects,
         "iterations": sum(w["iterations"] for w in windows),

@@ -9,8 +9,8 @@ names the key and the fix, before any work starts. The Hydra app registers
 :func:`default_tree` as its config's base, so ``conf/config.yaml`` only selects and
 overrides; the algorithm reads these objects, never the config dict.
 
-Checks that need a registry (optimiser presets, starts, objectives, depth sources) look
-their names up where the registry lives, so a setting is judged the same wherever it is read.
+Checks that need a registry (optimiser presets, objectives) look their names up where the
+registry lives, so a setting is judged the same wherever it is read.
 """
 
 from __future__ import annotations
@@ -68,9 +68,12 @@ def smoothing(value: Sigma, key: str) -> tuple[float, float, float]:
 
 def _check_optimizer_preset(name: str, key: str) -> None:
     """Refuse, in one line naming ``key``, an optimiser preset name nobody defines."""
-    from spatialseg.config import check_option
+    import optimizers
 
-    check_option("optimizer", name, key)
+    if name not in optimizers.preset_names():
+        raise ValueError(
+            f"{key}: unknown optimizer {name!r}; choose from {', '.join(optimizers.preset_names())}"
+        )
 
 
 def _in_range(value: float, key: str, low: float, high: float, *, open_low: bool) -> None:
@@ -370,6 +373,10 @@ class ClusteringSettings(Section):
         integer_setting(self.patience, "clustering.patience", 1)
         number_setting(self.target, "clustering.target", optional=True)
         number_setting(self.label_tol, "clustering.label_tol", 0, optional=True)
+        if self.label_tol is not None and self.label_tol >= 1:  # a share of the events
+            raise ValueError(
+                f"clustering.label_tol must be a number in [0, 1) or null, got {self.label_tol!r}"
+            )
         integer_setting(self.evals_per_step, "clustering.evals_per_step", 1)
         integer_setting(self.step_events, "clustering.step_events", 1, optional=True)
         _in_range(self.max_displacement, "clustering.max_displacement", 0, 1, open_low=True)

@@ -7,8 +7,9 @@ per point (M,), -1 where a point has none. Adding a start: :func:`register_start
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -28,6 +29,7 @@ from spatialseg.points import (
     window_objective,
 )
 from spatialseg.recording import Recording
+from spatialseg.settings import ClusteringSettings, InitSettings, Settings
 
 __all__ = [
     "PREVIOUS",
@@ -60,7 +62,7 @@ class StartInput:
 
     window: Recording
     prepared: Prepared
-    cfg: Mapping[str, Any]
+    settings: Settings
     k: int
     bounds: np.ndarray
     seed: int
@@ -114,7 +116,7 @@ def start_named(name: Any) -> Start:
 
 
 def check_optimizer_name(name: str, key: str) -> None:
-    """Raise a one-line error unless ``name`` is a ``conf/optimizer`` option (``key``: the
+    """Raise a one-line error unless ``name`` is an optimiser preset (``key``: the
     config key that named it)."""
     from spatialseg.config import check_option
 
@@ -122,33 +124,28 @@ def check_optimizer_name(name: str, key: str) -> None:
 
 
 def named_optimizer(name: str, key: str) -> Any:
-    """The optimiser of ``conf/optimizer/<name>.yaml`` with its defaults (``key``: the
-    config key that named it, for the error message)."""
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
-
-    from spatialseg.config import conf_dir
+    """The optimiser preset ``name`` (:func:`optimizers.preset`; ``key``: the config key
+    that named it, for the error message)."""
+    import optimizers
 
     check_optimizer_name(name, key)
-    return instantiate(OmegaConf.load(conf_dir() / "optimizer" / f"{name}.yaml"))
+    return optimizers.preset(name)
 
 
 def _tiles_init(given: StartInput) -> motion_init.InitResult | None:
     """Initial motions from each image tile's own contrast maximum and a greedy cover
     (:mod:`spatialseg.hypotheses`); None when fewer than ``k`` tiles are dense enough."""
-    prepared, cfg, k = given.prepared, given.cfg, given.k
-    params = cfg["init"]["tiles"]
-    t_ref = reference_time(prepared.t, cfg["volume"]["t_ref"])
+    prepared, settings, k = given.prepared, given.settings, given.k
+    params = settings.init.tiles
+    t_ref = reference_time(prepared.t, settings.volume.t_ref)
     events = given.window.events
     xy = np.column_stack([events.x, events.y])[prepared.valid]
-    event_tile, counts = hypotheses.image_tiles(
-        xy, float(params["size"]), int(params["min_events"])
-    )
+    event_tile, counts = hypotheses.image_tiles(xy, float(params.size), params.min_events)
     if len(counts) < k:
         return None
 
     def evaluator_for(index: np.ndarray) -> ModelEvaluator:
-        return window_objective(prepared, t_ref, cfg, index)
+        return window_objective(prepared, t_ref, settings, index)
 
     tiles = hypotheses.Tiles(evaluator_for, event_tile, len(counts))
     velocities, tile_label = hypotheses.tile_motions(
@@ -156,10 +153,10 @@ def _tiles_init(given: StartInput) -> motion_init.InitResult | None:
         k,
         given.optimizer,
         given.bounds,
-        named_optimizer(str(params["refit"]), "init.tiles.refit"),
-        evals=int(params["evals"]),
-        rounds=int(params["rounds"]),
-        explained=None if params["explained"] is None else float(params["explained"]),
+        named_optimizer(params.refit, "init.tiles.refit"),
+        evals=params.evals,
+        rounds=params.rounds,
+        explained=params.explained,
         seed=given.seed,
     )
     thetas = spatial_velocities(velocities)
@@ -168,11 +165,12 @@ def _tiles_init(given: StartInput) -> motion_init.InitResult | None:
     return motion_init.InitResult(thetas, flows, 0, False, labels)
 
 
-def _flow_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
+def _flow_settings(init: InitSettings) -> dict[str, Any]:
     """The flow starts' ``init`` settings: all but ``method``, ``auto`` and each registered
     start's own section (``init.tiles``)."""
     own = ("method", "auto", *_REGISTRY)
-    return {key: value for key, value in cfg["init"].items() if key not in own}
+    names = [f.name for f in dataclasses.fields(init) if f.name not in own]
+    return {name: getattr(init, name) for name in names}
 
 
 @register_start("tiles")
@@ -216,7 +214,7 @@ def _image_flow_start(given: StartInput) -> motion_init.InitResult:
         dim=2,
         max_speed=float(given.bounds[:, 1].max()),
         lift=lift,
-        **_flow_settings(given.cfg),
+        **_flow_settings(given.settings.init),
     )
 
 
@@ -227,7 +225,7 @@ def _time_surface_start(given: StartInput) -> motion_init.InitResult:
     prepared = given.prepared
     grid = prepared.grid
     if grid.projection is not None:  # the paper's three planes are metric
-        grid = volume_grid(prepared.points, given.window.camera, given.cfg, "metric")
+        grid = volume_grid(prepared.points, given.window.camera, given.settings, "metric")
     return motion_init.initial_motions(
         prepared.points,
         prepared.t,
@@ -236,14 +234,14 @@ def _time_surface_start(given: StartInput) -> motion_init.InitResult:
         seed=given.seed,
         dim=prepared.dim,
         max_speed=float(given.bounds[:, 1].max()),
-        **_flow_settings(given.cfg),
+        **_flow_settings(given.settings.init),
     )
 
 
 def initialise(
     window: Recording,
     prepared: Prepared,
-    cfg: Mapping[str, Any],
+    settings: Settings,
     k: int,
     bounds: np.ndarray,
     *,
@@ -258,11 +256,11 @@ def initialise(
     faster than it are discarded. ``tiles`` falls back to ``image_flow`` when fewer than K
     tiles have enough events. ``auto`` is resolved by
     :func:`spatialseg.window.segment_window` (:func:`init_candidates`)."""
-    start = start_named(cfg["init"]["method"])
-    return start(StartInput(window, prepared, cfg, k, bounds, seed, optimizer))
+    start = start_named(settings.init.method)
+    return start(StartInput(window, prepared, settings, k, bounds, seed, optimizer))
 
 
-def init_candidates(init_cfg: Mapping[str, Any]) -> list[str]:
+def init_candidates(init: InitSettings) -> list[str]:
     """The starts a window is clustered from: ``init.method``, or for ``auto`` each of
     ``init.auto`` (:func:`spatialseg.window.segment_window` keeps the result with the highest
     total contrast; ``previous`` runs only where a preceding window has been segmented).
@@ -274,11 +272,11 @@ def init_candidates(init_cfg: Mapping[str, Any]) -> list[str]:
     after a few iterations instead of at the end disagreed with the final ranking on 3-4 of
     24 scene-seeds, so each start runs the whole loop (docs/method.md, "Both starts").
     """
-    method = init_cfg["method"]
+    method = init.method
     if method != "auto":
         start_named(method)
         return [method]
-    names = list(init_cfg["auto"] or [])
+    names = list(init.auto)
     starts = available_starts()
     if not any(n in starts for n in names) or any(n not in (*starts, PREVIOUS) for n in names):
         raise ValueError(
@@ -292,7 +290,7 @@ def previous_init(
     previous: np.ndarray,
     prepared: Prepared,
     evaluator: ModelEvaluator,
-    ccfg: Mapping[str, Any],
+    clustering: ClusteringSettings,
     bounds: np.ndarray,
     *,
     alone: bool,
@@ -312,7 +310,7 @@ def previous_init(
         )
     k = len(previous)
     thetas = np.clip(previous[:, : prepared.dim], bounds[:, 0], bounds[:, 1])
-    sigmas, stride = p_step_settings(ccfg, alone=alone)
+    sigmas, stride = p_step_settings(clustering, alone=alone)
     uniform = np.full((prepared.points.shape[0], k), 1.0 / k)
     labels = np.argmax(p_step(evaluator, thetas, uniform, sigmas, stride), axis=1)
     return motion_init.InitResult(

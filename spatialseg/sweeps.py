@@ -2,12 +2,13 @@
 
 The children are grouped by keys; a key K is read from the run's param K (the flattened
 config, e.g. ``n_clusters``, ``seed``, ``clustering.evals_per_step``), else K.name
-(``scene`` -> ``scene.name``), else the job's command-line override ``K=V`` (how a config
-group such as ``optimizer=pso`` was chosen), else K._target_ (the optimiser's class when the
-sweep did not choose it). A job logs its params as it starts, so failed jobs have them too.
-Per group: runs, finished, failed, and per metric the median and interquartile range over
-the finished runs. Used by :class:`spatialseg.tracking.SweepCallback` (the parent run's
-``sweep_summary.*`` artifacts) and by ``experiments/sweep_report.py``.
+(``scene`` -> ``scene.name``, ``optimizer`` -> its preset's name), else the job's
+command-line override ``K=V`` (how a config group was chosen), else K._target_ (an
+optimiser a user's own config builds by class). A job logs its params as it starts, so
+failed jobs have them too. Per group: runs, finished, failed, and per metric the median
+and interquartile range over the finished runs. Used by
+:class:`spatialseg.tracking.SweepCallback` (the parent run's ``sweep_summary.*``
+artifacts) and by ``experiments/sweep_report.py``.
 """
 
 from __future__ import annotations

@@ -16,8 +16,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from spatialseg import edpa, motion_init
-from spatialseg.checks import integer_setting, is_integer, number_setting, optional_positive
+from spatialseg import motion_init
 from spatialseg.clustering import (
     ClusteringResult,
     ConvergenceRules,
@@ -32,12 +31,9 @@ from spatialseg.clustering import (
     p_step,
     update_memberships,
 )
-from spatialseg.executors import check_parallel
-from spatialseg.objectives import make_objective
 from spatialseg.points import (
     ModelEvaluator,
     Prepared,
-    depth_change_cap,
     off_edge_events,
     p_step_settings,
     prepare,
@@ -45,18 +41,18 @@ from spatialseg.points import (
     relabel_sigmas,
     search_bounds,
     spatial_velocities,
+    volume_objective,
     window_objective,
 )
-from spatialseg.recording import Recording, check_window_context
+from spatialseg.recording import Recording
+from spatialseg.settings import ClusteringSettings, Settings, settings_from
 from spatialseg.starts import (
     PREVIOUS,
-    check_optimizer_name,
     init_candidates,
     initialise,
     named_optimizer,
     previous_init,
 )
-from spatialseg.volume import VolumeObjective
 
 __all__ = [
     "FEW_EVENTS_PER_CLUSTER",
@@ -65,12 +61,10 @@ __all__ = [
     "assign_labels",
     "check_config",
     "check_events_per_cluster",
-    "cluster_count",
     "label_rest",
     "motion_separation",
     "prior_weights",
     "refit_velocities",
-    "relabel_prior_scale",
     "segment_window",
 ]
 
@@ -111,7 +105,7 @@ class WindowResult:
 
 def segment_window(
     window: Recording,
-    cfg: Mapping[str, Any],
+    settings: Settings,
     optimizer: Any,
     *,
     seed: int,
@@ -119,26 +113,26 @@ def segment_window(
     previous: np.ndarray | None = None,
     progress: str | None = None,
 ) -> WindowResult:
-    """Segment one window (two depth maps) into ``cfg['n_clusters']`` motions; with
+    """Segment one window (two depth maps) into ``n_clusters`` motions; with
     ``init.method=auto``, from each start of ``init.auto``, keeping the highest total
     contrast. ``previous`` (K x the model's components): the preceding window's final
     velocities, the ``previous`` start (skipped when None). ``progress``: the window's name
     in a DEBUG line per iteration and per start (None: no such lines)."""
-    wanted = cluster_count(cfg)
+    wanted = settings.cluster_count
     k = wanted or (1 if previous is None else len(previous))
-    starts = [s for s in init_candidates(cfg["init"]) if s != PREVIOUS or previous is not None]
+    starts = [s for s in init_candidates(settings.init) if s != PREVIOUS or previous is not None]
     if wanted is None and previous is not None:  # auto: the window before's motions, grown
         starts = [PREVIOUS]
     alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    prepared = prepare(window, cfg)
+    prepared = prepare(window, settings)
     check_events_per_cluster(prepared.points.shape[0], k, window.name)
-    t_ref = reference_time(prepared.t, cfg["volume"]["t_ref"])
+    t_ref = reference_time(prepared.t, settings.volume.t_ref)
     xy = np.column_stack([window.events.x, window.events.y])[prepared.valid].astype(np.float64)
     timings["prepare"] = time.perf_counter() - start
-    ccfg = cfg["clustering"]
-    bounds = search_bounds(prepared, float(ccfg["max_displacement"]), depth_change_cap(ccfg))
+    clustering = settings.clustering
+    bounds = search_bounds(prepared, clustering.max_displacement, clustering.max_depth_change)
     objectives: tuple[ModelEvaluator, tuple[StepStage, ...]] | None = None
     kept: tuple[ClusteringResult, motion_init.InitResult, str] | None = None
 
@@ -149,8 +143,8 @@ def segment_window(
         part = replace(
             prepared, points=prepared.points[group], t=prepared.t[group], valid=valid, rest=None
         )
-        flow_cfg = {**cfg, "init": {**cfg["init"], "method": "image_flow"}}
-        init = initialise(window, part, flow_cfg, 1, bounds, seed=group_seed)
+        flow = _with_start(settings, "image_flow")
+        init = initialise(window, part, flow, 1, bounds, seed=group_seed)
         return init.thetas[0, : prepared.dim]
 
     timings["init"] = timings["cluster"] = 0.0
@@ -158,23 +152,28 @@ def segment_window(
         start = time.perf_counter()
         if method == PREVIOUS:
             if objectives is None:
-                objectives = _window_objectives(prepared, t_ref, cfg, optimizer, seed=seed)
+                objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
             assert previous is not None  # starts keeps PREVIOUS only with a previous window
-            init = previous_init(previous, prepared, objectives[0], ccfg, bounds, alone=alone)
+            init = previous_init(previous, prepared, objectives[0], clustering, bounds, alone=alone)
         else:
-            method_cfg = {**cfg, "init": {**cfg["init"], "method": method}}
             init = initialise(
-                window, prepared, method_cfg, k, bounds, seed=seed, optimizer=optimizer
+                window,
+                prepared,
+                _with_start(settings, method),
+                k,
+                bounds,
+                seed=seed,
+                optimizer=optimizer,
             )
         timings["init"] += time.perf_counter() - start
         start = time.perf_counter()
         if objectives is None:  # after the first start, so a tile start's volumes are freed
-            objectives = _window_objectives(prepared, t_ref, cfg, optimizer, seed=seed)
+            objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
         result = _cluster_from(
             init,
             prepared,
             objectives,
-            cfg,
+            clustering,
             optimizer,
             bounds,
             seed=seed,
@@ -192,12 +191,12 @@ def segment_window(
     assert kept is not None and objectives is not None  # init_candidates names a start
     result, init, method = kept
     start = time.perf_counter()
-    result = refit_velocities(result, prepared, t_ref, cfg, bounds, seed=seed)
+    result = refit_velocities(result, prepared, t_ref, settings, bounds, seed=seed)
     timings["refit"] = time.perf_counter() - start
-    sigmas = relabel_sigmas(cfg["clustering"], alone=alone)
+    sigmas = relabel_sigmas(clustering, alone=alone)
     if sigmas is not None:
         start = time.perf_counter()
-        scale = relabel_prior_scale(ccfg)
+        scale = clustering.relabel_prior_scale
         prior = (
             None
             if scale is None
@@ -209,13 +208,12 @@ def segment_window(
     start = time.perf_counter()
     probabilities = _full_probabilities(result.probabilities, prepared.valid)
     if prepared.rest is not None and len(prepared.rest[0]):
-        rest = label_rest(prepared, t_ref, cfg, result, p_step_settings(ccfg, alone=alone))
+        blur = p_step_settings(clustering, alone=alone)
+        rest = label_rest(prepared, t_ref, settings, result, blur)
         probabilities[prepared.rest[2]] = rest
     timings["label"] = time.perf_counter() - start
     labels = assign_labels(
-        probabilities[prepared.labelled],
-        prepared.labelled,
-        float(cfg["clustering"]["min_probability"]),
+        probabilities[prepared.labelled], prepared.labelled, clustering.min_probability
     )
     return WindowResult(
         labels, probabilities, result, prepared, t_ref, timings, bool(init.fallback), method
@@ -239,43 +237,33 @@ def check_events_per_cluster(n_events: int, k: int, name: str) -> None:
         log.warning("%s: its velocities are poorly determined", too_few(FEW_EVENTS_PER_CLUSTER))
 
 
-def check_config(cfg: Mapping[str, Any]) -> None:
-    """Refuse, before any data is loaded or simulated, the settings that would otherwise fail
-    only once the run reaches them, or never (an optimiser named for a stage that does not
-    run): the starts, the optimisers named by key, the refit's budget, the P-step and
-    relabelling smoothing and its grid (for windows with neighbours and alone), the context,
-    the depth-change cap, the relabelling prior, the stopping rules and EDPA's edge radius."""
-    init_candidates(cfg["init"])
-    init_candidates({**cfg["init"], "method": "auto"})  # init.auto, read only with auto
-    check_optimizer_name(str(cfg["init"]["tiles"]["refit"]), "init.tiles.refit")
-    check_optimizer_name(str(cfg["clustering"]["coarse"]["refine"]), "clustering.coarse.refine")
-    check_optimizer_name(str(cfg["clustering"]["refit"]["optimizer"]), "clustering.refit.optimizer")
-    _refit_budget(cfg)
-    p_step_settings(cfg["clustering"], alone=False)
-    p_step_settings(cfg["clustering"], alone=True)
-    check_window_context(cfg["window"]["context"])
-    check_parallel(cfg["window"]["parallel"], cfg["window"]["workers"])
-    depth_change_cap(cfg["clustering"])
-    relabel_sigmas(cfg["clustering"], alone=False)
-    relabel_sigmas(cfg["clustering"], alone=True)
-    relabel_prior_scale(cfg["clustering"])
-    _rules(cfg["clustering"])
-    cluster_count(cfg)
-    _max_clusters(cfg["clustering"])
-    edpa.check_edge_radius(cfg["edpa"]["edge_radius"])
+def check_config(settings: Settings | Mapping[str, Any]) -> Settings:
+    """The run's :class:`~spatialseg.settings.Settings`, checked before any data is loaded or
+    simulated (:func:`~spatialseg.settings.settings_from`), and the starts ``init.method``
+    and ``init.auto`` name looked up in the registry of starts, which the settings do not
+    know (:func:`~spatialseg.starts.init_candidates`; ``init.auto`` is read only with auto)."""
+    settings = settings_from(settings)
+    init_candidates(settings.init)
+    init_candidates(replace(settings.init, method="auto"))
+    return settings
+
+
+def _with_start(settings: Settings, method: str) -> Settings:
+    """``settings`` with ``init.method`` set to the start ``method``."""
+    return replace(settings, init=replace(settings.init, method=method))
 
 
 def _window_objectives(
-    prepared: Prepared, t_ref: float, cfg: Mapping[str, Any], optimizer: Any, *, seed: int
+    prepared: Prepared, t_ref: float, settings: Settings, optimizer: Any, *, seed: int
 ) -> tuple[ModelEvaluator, tuple[StepStage, ...]]:
     """The P-step's evaluator over every event and the theta-step's stages, shared by the
     window's starts."""
-    evaluator = window_objective(prepared, t_ref, cfg)
-    return evaluator, _step_stages(prepared, t_ref, cfg, optimizer, evaluator, seed=seed)
+    evaluator = window_objective(prepared, t_ref, settings)
+    return evaluator, _step_stages(prepared, t_ref, settings, optimizer, evaluator, seed=seed)
 
 
 def _step_subset(
-    prepared: Prepared, t_ref: float, cfg: Mapping[str, Any], *, seed: int
+    prepared: Prepared, t_ref: float, settings: Settings, *, seed: int
 ) -> tuple[ModelEvaluator, np.ndarray] | None:
     """The theta-step's evaluator over at most ``clustering.step_events`` events drawn with
     ``seed`` (and their indices), or None to optimise on all events. Unless
@@ -288,27 +276,25 @@ def _step_subset(
     seen just after the occluder passed; such events biased the static scene's vz in
     ``ego_street`` (docs/scenes.md), so they are labelled but do not steer the velocities.
     """
-    ccfg = cfg["clustering"]
-    limit = ccfg["step_events"]
-    if limit is not None and int(limit) < 1:
-        raise ValueError(f"clustering.step_events must be >= 1 or null, got {limit}")
+    clustering = settings.clustering
+    limit = clustering.step_events
     n = prepared.points.shape[0]
     pool = (
         np.arange(n)
-        if ccfg["step_edges"]
-        else off_edge_events(prepared, cluster_count(cfg) or _max_clusters(ccfg))
+        if clustering.step_edges
+        else off_edge_events(prepared, settings.cluster_count or clustering.max_clusters)
     )
-    if len(pool) == n and (limit is None or n <= int(limit)):
+    if len(pool) == n and (limit is None or n <= limit):
         return None
-    if limit is not None and len(pool) > int(limit):
-        pool = np.sort(np.random.default_rng(seed).choice(pool, int(limit), replace=False))
-    return window_objective(prepared, t_ref, cfg, pool), pool
+    if limit is not None and len(pool) > limit:
+        pool = np.sort(np.random.default_rng(seed).choice(pool, limit, replace=False))
+    return window_objective(prepared, t_ref, settings, pool), pool
 
 
 def _step_stages(
     prepared: Prepared,
     t_ref: float,
-    cfg: Mapping[str, Any],
+    settings: Settings,
     optimizer: Any,
     evaluator: ModelEvaluator,
     *,
@@ -319,34 +305,33 @@ def _step_stages(
     ``stride`` times coarser and at most ``events`` of them, then ``refine`` on them at full
     resolution (a coarse-to-fine search: the global phase on the cheaper problem).
     ``evaluator`` is the loop's, over every event: the refinement's when they all step."""
-    ccfg = cfg["clustering"]
-    budget, coarse = int(ccfg["evals_per_step"]), ccfg["coarse"]
-    step = _step_subset(prepared, t_ref, cfg, seed=seed)
-    if int(coarse["stride"]) == 1 and coarse["events"] is None:
+    budget, coarse = settings.clustering.evals_per_step, settings.clustering.coarse
+    step = _step_subset(prepared, t_ref, settings, seed=seed)
+    if coarse.stride == 1 and coarse.events is None:
         return () if step is None else (StepStage(step[0], optimizer, budget, step[1]),)
-    if coarse["events"] is not None and int(coarse["events"]) < 1:
-        raise ValueError(f"clustering.coarse.events must be >= 1 or null, got {coarse['events']}")
     fine, pool = step or (evaluator, np.arange(len(prepared.t)))
     sample = pool
-    if coarse["events"] is not None and len(pool) > int(coarse["events"]):
-        draw = np.random.default_rng(seed + 1).choice(len(pool), int(coarse["events"]), False)
+    if coarse.events is not None and len(pool) > coarse.events:
+        draw = np.random.default_rng(seed + 1).choice(len(pool), coarse.events, False)
         sample = pool[np.sort(draw)]
-    grid = prepared.grid.coarsened(int(coarse["stride"]))
-    refine = named_optimizer(str(coarse["refine"]), "clustering.coarse.refine")
+    grid = prepared.grid.coarsened(coarse.stride)
+    refine = named_optimizer(coarse.refine, "clustering.coarse.refine")
     return (
-        StepStage(window_objective(prepared, t_ref, cfg, sample, grid), optimizer, budget, sample),
-        StepStage(fine, refine, int(coarse["refine_evals"]), pool),
+        StepStage(
+            window_objective(prepared, t_ref, settings, sample, grid), optimizer, budget, sample
+        ),
+        StepStage(fine, refine, coarse.refine_evals, pool),
     )
 
 
-def _rules(ccfg: Mapping[str, Any]) -> ConvergenceRules:
-    """The loop's stopping rules from ``clustering``, checked (their ranges: ConvergenceRules)."""
+def _rules(clustering: ClusteringSettings) -> ConvergenceRules:
+    """The loop's stopping rules from ``clustering``."""
     return ConvergenceRules(
-        max_iterations=integer_setting(ccfg["max_iterations"], "clustering.max_iterations", 1),
-        tol=number_setting(ccfg["tol"], "clustering.tol", 0),
-        patience=integer_setting(ccfg["patience"], "clustering.patience", 1),
-        target=number_setting(ccfg["target"], "clustering.target", optional=True),
-        label_tol=number_setting(ccfg["label_tol"], "clustering.label_tol", 0, optional=True),
+        max_iterations=clustering.max_iterations,
+        tol=clustering.tol,
+        patience=clustering.patience,
+        target=clustering.target,
+        label_tol=clustering.label_tol,
     )
 
 
@@ -354,7 +339,7 @@ def _cluster_from(
     init: motion_init.InitResult,
     prepared: Prepared,
     objectives: tuple[ModelEvaluator, tuple[StepStage, ...]],
-    cfg: Mapping[str, Any],
+    clustering: ClusteringSettings,
     optimizer: Any,
     bounds: np.ndarray,
     *,
@@ -371,18 +356,17 @@ def _cluster_from(
     (:func:`spatialseg.clustering.grow_clusters`, up to ``clustering.max_clusters``;
     ``xy``: the points' image positions; ``seed_motion(points, seed)``: the motion of a
     group of points)."""
-    ccfg = cfg["clustering"]
-    sigmas, stride = p_step_settings(ccfg, alone=alone)
+    sigmas, stride = p_step_settings(clustering, alone=alone)
     init_p = initial_memberships(
         prepared.grid.coordinates(prepared.points),
         prepared.grid.voxel_size,
         init.labels,
         len(init.thetas),
-        mode=ccfg["init_memberships"],
-        confidence=float(ccfg["init_confidence"]),
+        mode=clustering.init_memberships,
+        confidence=clustering.init_confidence,
     )
     evaluator, stages = objectives
-    budget = int(ccfg["evals_per_step"])
+    rules = _rules(clustering)
 
     def run(thetas: np.ndarray, p: np.ndarray, run_seed: int) -> ClusteringResult:
         return iterative_clustering(
@@ -391,8 +375,8 @@ def _cluster_from(
             thetas,
             p,
             bounds,
-            rules=_rules(ccfg),
-            evals_per_step=budget,
+            rules=rules,
+            evals_per_step=clustering.evals_per_step,
             p_step_sigma=sigmas,
             p_step_stride=stride,
             seed=run_seed,
@@ -410,7 +394,7 @@ def _cluster_from(
         separation=lambda a, b: motion_separation(prepared, a, b),
         xy=xy,
     )
-    return grow_clusters(result, repair, seed=seed + 1, max_clusters=_max_clusters(ccfg))
+    return grow_clusters(result, repair, seed=seed + 1, max_clusters=clustering.max_clusters)
 
 
 def _better(result: ClusteringResult, than: ClusteringResult, *, auto: bool) -> bool:
@@ -419,24 +403,6 @@ def _better(result: ClusteringResult, than: ClusteringResult, *, auto: bool) -> 
     if auto:
         return result.sharpness > than.sharpness
     return result.total > than.total
-
-
-def cluster_count(cfg: Mapping[str, Any]) -> int | None:
-    """``n_clusters``: a whole number >= 1, or None for ``auto``; a one-line error otherwise."""
-    value = cfg["n_clusters"]
-    if value == "auto":
-        return None
-    if not is_integer(value, 1):
-        raise ValueError(
-            f"n_clusters must be a whole number >= 1 or auto (the number found per window), "
-            f"got {value!r}"
-        )
-    return int(value)
-
-
-def _max_clusters(ccfg: Mapping[str, Any]) -> int:
-    """``clustering.max_clusters`` (n_clusters=auto's limit), checked."""
-    return integer_setting(ccfg["max_clusters"], "clustering.max_clusters", 1)
 
 
 def motion_separation(prepared: Prepared, a: np.ndarray, b: np.ndarray) -> float:
@@ -451,23 +417,11 @@ def motion_separation(prepared: Prepared, a: np.ndarray, b: np.ndarray) -> float
     return float(np.nanmedian(np.linalg.norm(gap, axis=1)))
 
 
-def _refit_budget(cfg: Mapping[str, Any]) -> int:
-    """``clustering.refit.evals``, an integer >= 0 (0: no refit), after checking
-    ``clustering.refit.radius`` is in (0, 1]; a one-line error otherwise."""
-    rcfg = cfg["clustering"]["refit"]
-    budget, radius = rcfg["evals"], rcfg["radius"]
-    if not is_integer(budget, 0):
-        raise ValueError(f"clustering.refit.evals must be an integer >= 0 (0: off), got {budget!r}")
-    if isinstance(radius, bool) or not isinstance(radius, int | float) or not 0 < radius <= 1:
-        raise ValueError(f"clustering.refit.radius must be a number in (0, 1], got {radius!r}")
-    return budget
-
-
 def refit_velocities(
     result: ClusteringResult,
     prepared: Prepared,
     t_ref: float,
-    cfg: Mapping[str, Any],
+    settings: Settings,
     bounds: np.ndarray,
     *,
     seed: int,
@@ -484,14 +438,13 @@ def refit_velocities(
     the local optimiser's first steps, sized by the box, wandered along the flat ridge of a
     short window's depth velocity (docs/method.md, "The velocity refit").
     """
-    budget = _refit_budget(cfg)
-    if budget == 0:
+    refit = settings.clustering.refit
+    if refit.evals == 0:
         return result
-    rcfg = cfg["clustering"]["refit"]
     index = off_edge_events(prepared, result.thetas.shape[0])
-    evaluator = window_objective(prepared, t_ref, cfg, index)
-    optimizer = named_optimizer(str(rcfg["optimizer"]), "clustering.refit.optimizer")
-    reach = float(rcfg["radius"]) * (bounds[:, 1] - bounds[:, 0])
+    evaluator = window_objective(prepared, t_ref, settings, index)
+    optimizer = named_optimizer(refit.optimizer, "clustering.refit.optimizer")
+    reach = refit.radius * (bounds[:, 1] - bounds[:, 0])
     thetas = result.thetas.copy()
     for j in range(thetas.shape[0]):
         evaluator.set_weights(result.probabilities[index, j])
@@ -501,13 +454,8 @@ def refit_velocities(
                 np.minimum(bounds[:, 1], thetas[j] + reach),
             ]
         )
-        thetas[j], _ = maximize_contrast(evaluator, optimizer, thetas[j], near, budget, seed)
+        thetas[j], _ = maximize_contrast(evaluator, optimizer, thetas[j], near, refit.evals, seed)
     return replace(result, thetas=thetas)
-
-
-def relabel_prior_scale(ccfg: Mapping[str, Any]) -> float | None:
-    """``clustering.relabel_prior_scale``, validated: a positive number of voxels, or None."""
-    return optional_positive(ccfg["relabel_prior_scale"], "clustering.relabel_prior_scale")
 
 
 def prior_weights(
@@ -541,7 +489,7 @@ def prior_weights(
 def label_rest(
     prepared: Prepared,
     t_ref: float,
-    cfg: Mapping[str, Any],
+    settings: Settings,
     result: ClusteringResult,
     blur: tuple[tuple[float, float, float], int],
 ) -> np.ndarray:
@@ -552,13 +500,8 @@ def label_rest(
     the nearest fitted event, not a tie that the column order would break."""
     points, t, _ = prepared.rest
     both = np.vstack([prepared.points, points])
-    volume = VolumeObjective(
-        both,
-        np.concatenate([prepared.t, t]) - t_ref,
-        prepared.grid,
-        make_objective(**cfg["objective"]),
-        dtype=str(cfg["volume"]["dtype"]),
-    )
+    dt = np.concatenate([prepared.t, t]) - t_ref
+    volume = volume_objective(both, dt, prepared.grid, settings)
     evaluator = ModelEvaluator(volume, prepared.dim)
     zeros = np.zeros((len(points), result.probabilities.shape[1]))
     memberships = np.vstack([result.probabilities, zeros])

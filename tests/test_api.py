@@ -109,7 +109,7 @@ def test_motion_segmenter_fit_equals_segment(recording: Recording) -> None:
             {"clustering.max_iteratons": 5},
             r"'clustering\.max_iteratons'; valid keys in clustering: .*max_iterations",
         ),
-        ({"n_clusters": 2.5}, r"n_clusters must be a whole number"),
+        ({"n_clusters": 2.5}, r"n_clusters must be an integer or one of 'auto', got 2\.5"),
         ({"clustering": {"max_iterations": "x"}}, r"clustering\.max_iterations must be an int"),
         ({"clustering": {"max_iterations": 0}}, r"clustering\.max_iterations must be an int"),
         ({"optimizer": "nope"}, r"optimizer: unknown optimizer 'nope'; choose from .*ssa_ga"),

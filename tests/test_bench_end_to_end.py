@@ -16,6 +16,7 @@ import bench_end_to_end as bench
 from _common import compose_config
 
 import spatialseg
+from spatialseg.settings import settings_from
 
 
 @pytest.mark.parametrize(
@@ -85,7 +86,8 @@ def test_pass_time_is_positive_and_counts_each_event_once() -> None:
     (each window alone, not with its neighbours) and leaves numba's threads as they were."""
     recording = spatialseg.simulate("interior", seed=0, window_events=1500, windows=2)
     threads = numba.get_num_threads()
-    seconds, events = bench.pass_seconds(recording, compose_config("n_clusters=2"), calls=3)
+    settings = settings_from(compose_config("n_clusters=2"))
+    seconds, events = bench.pass_seconds(recording, settings, calls=3)
     assert 0 < seconds < 1
     assert len(recording.events) // 2 < events <= len(recording.events)
     assert numba.get_num_threads() == threads

@@ -23,6 +23,7 @@ from spatialseg.grid import grid_around
 from spatialseg.metrics import segmentation_metrics
 from spatialseg.points import ModelEvaluator
 from spatialseg.scenes import load_scene
+from spatialseg.settings import settings_from
 from spatialseg.volume import VolumeObjective
 from spatialseg.window import segment_window
 
@@ -137,13 +138,13 @@ def test_theta_step_on_a_subset_labels_every_event():
         cfg = OmegaConf.to_container(compose("config", overrides=overrides), resolve=True)
     rec = load_scene(cfg["scene"], seed=0, window_events=4000)
     _, window = next(rec.windows())
-    res = segment_window(window, cfg, optimizers.create("ssa_ga"), seed=0)
+    res = segment_window(window, settings_from(cfg), optimizers.create("ssa_ga"), seed=0)
     assert res.probabilities.shape == (len(window.events), 2)
     assert segmentation_metrics(res.labels, window.ground_truth.labels)["accuracy"] > 0.95
     # one iteration from uniform memberships: the recorded contrast is the full volume's
     one = {**cfg, "clustering": {**cfg["clustering"], "max_iterations": 1}}
     one["clustering"]["init_memberships"] = "uniform"
-    res = segment_window(window, one, optimizers.create("ssa_ga"), seed=0)
+    res = segment_window(window, settings_from(one), optimizers.create("ssa_ga"), seed=0)
     full = ModelEvaluator(
         VolumeObjective(
             res.prepared.points, res.prepared.t - res.t_ref, res.prepared.grid, "variance"
@@ -195,24 +196,27 @@ def test_coarse_to_fine_theta_step():
         cfg = OmegaConf.to_container(compose("config", overrides=overrides), resolve=True)
     rec = load_scene(cfg["scene"], seed=0, window_events=4000)
     _, window = next(rec.windows())
-    prepared = prepare(window, cfg)
+    settings = settings_from(cfg)
+    prepared = prepare(window, settings)
     t_ref = reference_time(prepared.t, "middle")
     ssa_ga = optimizers.create("ssa_ga")
-    full = window_objective(prepared, t_ref, cfg)
-    coarse, fine = _step_stages(prepared, t_ref, cfg, ssa_ga, full, seed=0)
+    full = window_objective(prepared, t_ref, settings)
+    coarse, fine = _step_stages(prepared, t_ref, settings, ssa_ga, full, seed=0)
     # every event steps (none on an edge, fewer than step_events): the loop's evaluator refines
     assert fine.evaluator is full and len(fine.subset) == len(prepared.t)
     assert coarse.optimizer is ssa_ga and coarse.evaluator.n_events == 1000
     assert np.allclose(coarse.evaluator.inner.grid.voxel_size[:2], 2 * prepared.grid.voxel_size[:2])
     assert fine.evaluator.inner.grid is prepared.grid and fine.budget == 10
     assert set(coarse.subset) <= set(fine.subset)
-    res = segment_window(window, cfg, ssa_ga, seed=0)
+    res = segment_window(window, settings, ssa_ga, seed=0)
     assert all(r.n_evals == 2 * (30 + 10) for r in res.clustering.history)
     assert segmentation_metrics(res.labels, window.ground_truth.labels)["accuracy"] > 0.95
     bad = {**cfg, "clustering": {**cfg["clustering"], "coarse": {**cfg["clustering"]["coarse"]}}}
     bad["clustering"]["coarse"]["refine"] = "newton"
     with pytest.raises(ValueError, match=r"clustering\.coarse\.refine: unknown optimizer 'newton'"):
-        _step_stages(prepared, t_ref, bad, ssa_ga, full, seed=0)
+        settings_from(bad)
+    bad["clustering"]["coarse"]["refine"] = "nlopt_bobyqa"
     bad["clustering"]["coarse"]["events"] = 0
-    with pytest.raises(ValueError, match=r"clustering\.coarse\.events must be >= 1 or null"):
-        _step_stages(prepared, t_ref, bad, ssa_ga, full, seed=0)
+    pattern = r"clustering\.coarse\.events must be an integer >= 1 or null"
+    with pytest.raises(ValueError, match=pattern):
+        settings_from(bad)

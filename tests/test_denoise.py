@@ -10,6 +10,7 @@ from spatialseg.denoise import denoise_mask
 from spatialseg.events import EventStream
 from spatialseg.points import prepare
 from spatialseg.recording import Camera, DepthMap, Recording
+from spatialseg.settings import settings_from
 from spatialseg.window import segment_window
 from tests.test_pipeline import _config
 
@@ -134,14 +135,14 @@ def test_noise_is_left_out_of_the_fit_and_still_labelled():
     maps = (DepthMap(events.t[0], depth), DepthMap(events.t[-1], depth))
     window = Recording(events, camera, maps)
     cfg = _config("denoise.enabled=true", "denoise.window=0.005", "n_clusters=1")
-    prepared = prepare(window, cfg)
+    prepared = prepare(window, settings_from(cfg))
     keep = denoise_mask(events, radius=1, window=0.005)
     np.testing.assert_array_equal(prepared.valid, keep)
     np.testing.assert_array_equal(prepared.rest[2], ~keep)
     assert len(prepared.points) == keep.sum() < len(events)
-    result = segment_window(window, cfg, optimizers.create("ssa_ga"), seed=0)
+    result = segment_window(window, settings_from(cfg), optimizers.create("ssa_ga"), seed=0)
     assert np.all(result.labels == 0)
-    off = prepare(window, _config("n_clusters=1", "denoise.enabled=false"))
+    off = prepare(window, settings_from(_config("n_clusters=1", "denoise.enabled=false")))
     assert off.valid.all() and not off.rest[2].any()
     with pytest.raises(ValueError, match=r"denoise\.enabled must be true or false"):
-        prepare(window, {**cfg, "denoise": {**cfg["denoise"], "enabled": 1}})
+        settings_from({**cfg, "denoise": {**cfg["denoise"], "enabled": 1}})

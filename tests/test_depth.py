@@ -24,6 +24,7 @@ from spatialseg.depth import (
 from spatialseg.edpa import back_project
 from spatialseg.events import EventStream
 from spatialseg.recording import Camera, DepthMap, Keyframe, Recording
+from spatialseg.settings import settings_from
 
 # A 201 x 161 sensor with the principal point on pixel (100, 80).
 CAM = Camera(fx=200.0, fy=200.0, cx=100.0, cy=80.0, width=201, height=161)
@@ -333,9 +334,10 @@ def test_configured_depth_replaces_maps_unless_depth_is_recording():
     t = np.linspace(0.0, 1.0, 60)
     maps = (DepthMap(0.0, np.ones((16, 24))), DepthMap(1.0, np.ones((16, 24))))
     rec = _recording(t, depth_maps=maps)
-    assert with_configured_depth(rec, {"window": {"events": 30}}) is rec  # defaults: recording
+    default = settings_from({"window": {"events": 30}})  # depth=recording
+    assert with_configured_depth(rec, default) is rec
     cfg = {"depth": {"name": "constant", "value": 3.0}, "window": {"events": 30}}
-    out = with_configured_depth(rec, cfg)
+    out = with_configured_depth(rec, settings_from(cfg))
     assert [m.t for m in out.depth_maps] == [t[0], t[30], t[59]]
     assert all(np.all(m.depth == 3.0) for m in out.depth_maps)
 

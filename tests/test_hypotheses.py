@@ -14,6 +14,7 @@ from spatialseg.hypotheses import Tiles, greedy_cover, image_tiles, tile_motions
 from spatialseg.metrics import segmentation_metrics
 from spatialseg.points import ModelEvaluator
 from spatialseg.scenes import load_scene
+from spatialseg.settings import settings_from
 from spatialseg.starts import named_optimizer
 from spatialseg.volume import VolumeObjective
 from spatialseg.window import segment_window
@@ -100,7 +101,7 @@ def _config(*overrides: str) -> dict:
 def test_tile_init_segments_the_interior_window():
     cfg = _config("init.method=tiles")
     _, window = next(load_scene(cfg["scene"], seed=0, window_events=4000).windows())
-    res = segment_window(window, cfg, optimizers.create("ssa_ga"), seed=0)
+    res = segment_window(window, settings_from(cfg), optimizers.create("ssa_ga"), seed=0)
     assert segmentation_metrics(res.labels, window.ground_truth.labels)["accuracy"] > 0.95
 
 
@@ -115,4 +116,4 @@ def test_bad_init_settings_name_the_choices(override, message):
     cfg = _config("init.method=tiles", override)
     _, window = next(load_scene(cfg["scene"], seed=0, window_events=2000).windows())
     with pytest.raises(ValueError, match=message):
-        segment_window(window, cfg, optimizers.create("ssa_ga"), seed=0)
+        segment_window(window, settings_from(cfg), optimizers.create("ssa_ga"), seed=0)

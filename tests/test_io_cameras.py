@@ -24,6 +24,7 @@ from spatialseg.io import (
 )
 from spatialseg.recording import Camera, DepthMap, Recording
 from spatialseg.scenes import load_scene, packaged_data
+from spatialseg.settings import settings_from
 
 from .conftest import REPO
 
@@ -110,10 +111,10 @@ def test_road_cars_scene_reads_the_packaged_file_with_its_assumed_camera() -> No
 
 
 def _with_depth(recording, depth_name: str, window_events: int):
-    """``with_configured_depth`` with the shipped config of ``depth=depth_name``."""
+    """``with_configured_depth`` with the shipped settings of ``depth=depth_name``."""
     depth = OmegaConf.to_container(OmegaConf.load(REPO / f"conf/depth/{depth_name}.yaml"))
     cfg = {"depth": depth, "window": {"events": window_events}}
-    return with_configured_depth(recording, cfg)
+    return with_configured_depth(recording, settings_from(cfg))
 
 
 def test_loaded_recording_gets_depth_maps_from_the_depth_config(tmp_path: Path) -> None:

@@ -1,22 +1,15 @@
-"""Every registered optimiser has a config in conf/optimizer/, and configs build optimisers
-through Hydra exactly as ``optimizer=NAME optimizer.PARAM=VALUE`` does on the command line."""
+"""Every optimiser preset is an option of the ``optimizer`` group, holding all its
+hyperparameters, and builds through Hydra exactly as ``optimizer=NAME optimizer.PARAM=VALUE``
+does on the command line (the presets live in the optimizers package, not in conf/)."""
 
 from __future__ import annotations
 
 import pytest
 from hydra import compose, initialize_config_dir
-from hydra.utils import get_class, instantiate
-from omegaconf import OmegaConf
+from hydra.utils import instantiate
 
 import optimizers
 from spatialseg.config import ConfigError, conf_dir, group_options, validate_config
-
-CONFIGS = group_options("optimizer")
-
-
-def load(name: str) -> dict:
-    """conf/optimizer/NAME.yaml as a plain dict."""
-    return OmegaConf.to_container(OmegaConf.load(conf_dir() / "optimizer" / f"{name}.yaml"))
 
 
 def composed(*overrides: str):
@@ -28,25 +21,19 @@ def composed(*overrides: str):
     return cfg
 
 
-@pytest.mark.parametrize("name", optimizers.available())
-def test_registered_name_has_a_config_holding_its_defaults(name):
-    assert name in CONFIGS
-    config = load(name)
-    target = get_class(config.pop("_target_"))
-    assert target is type(optimizers.create(name))
-    assert config == {
-        field: getattr(optimizers.create(name).hp, field) for field in target.hyperparameter_names()
-    }
+def test_the_group_offers_every_preset():
+    assert set(optimizers.preset_names()) <= set(group_options("optimizer"))
+    assert not (conf_dir() / "optimizer").exists()  # no copy of the hyperparameters
 
 
-@pytest.mark.parametrize("name", CONFIGS)
-def test_config_lists_every_hyperparameter_of_its_target(name):
-    config = load(name)
-    target = get_class(config.pop("_target_"))
-    assert list(config) == target.hyperparameter_names()
-    assert isinstance(
-        instantiate(OmegaConf.load(conf_dir() / "optimizer" / f"{name}.yaml")), target
-    )
+@pytest.mark.parametrize("name", optimizers.preset_names())
+def test_each_option_lists_every_hyperparameter_and_builds_the_preset(name):
+    cfg = composed(f"optimizer={name}")
+    listed = {k: v for k, v in cfg.optimizer.items() if k not in ("_target_", "name")}
+    assert listed == optimizers.preset_hyperparameters(name)
+    built = instantiate(cfg.optimizer)
+    assert type(built) is type(optimizers.preset(name))
+    assert built.hp == optimizers.preset(name).hp
 
 
 def test_command_line_selects_the_optimiser_and_its_hyperparameters():

@@ -1,5 +1,6 @@
-"""Conformance suite of optimizers/: every config in conf/optimizer/ (which include every
-registered optimiser at its defaults) must honour the one interface and its guarantees.
+"""Conformance suite of optimizers/: every preset (:func:`optimizers.preset_names`: each
+registered optimiser at its defaults, and the named variants) must honour the one interface
+and its guarantees.
 
 Sections follow the issue: 1 interface, 2 value and history, 3 budget, 4 feasibility,
 5 determinism, 6 accuracy against recorded runs, 7 gradients, 8 failure handling.
@@ -19,8 +20,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra.utils import instantiate
-from omegaconf import OmegaConf
 from threadpoolctl import threadpool_limits
 
 import optimizers
@@ -32,10 +31,9 @@ from optimizers.benchmark import (
     make_function,
     run_seeds,
 )
-from spatialseg.config import conf_dir, group_options
 
-CONFIGS = group_options("optimizer")
-#: Configs whose optimiser calls grad (the others must ignore it).
+CONFIGS = optimizers.preset_names()
+#: Presets whose optimiser calls grad (the others must ignore it).
 GRADIENT_CONFIGS = {"gradient_ascent", "ssa_ga", "multistart_lbfgs", "nlopt_lbfgs", "nlopt_mma"}
 SHIFTED = make_function("rastrigin", 3, transformed=True)
 
@@ -48,8 +46,8 @@ def single_threaded_blas():
 
 
 def build(name: str) -> optimizers.Optimizer:
-    """The optimiser of conf/optimizer/NAME.yaml, built as ``optimizer=NAME`` builds it."""
-    return instantiate(OmegaConf.load(conf_dir() / "optimizer" / f"{name}.yaml"))
+    """The optimiser preset ``name`` (what ``optimizer=NAME`` builds)."""
+    return optimizers.preset(name)
 
 
 class Recorder:

@@ -14,7 +14,6 @@ from spatialseg.config import conf_dir
 from spatialseg.metrics import segmentation_metrics
 from spatialseg.pipeline import SegmentationResult, segment_recording
 from spatialseg.points import (
-    p_step_sigmas,
     prepare,
     reference_time,
     search_bounds,
@@ -22,6 +21,7 @@ from spatialseg.points import (
 )
 from spatialseg.recording import DepthMap
 from spatialseg.scenes import load_scene
+from spatialseg.settings import RefitSettings, Settings, settings_from, smoothing
 from spatialseg.starts import previous_init
 from spatialseg.volume import VolumeObjective
 from spatialseg.window import check_config, prior_weights, segment_window
@@ -115,7 +115,7 @@ def test_bad_windows_give_clear_errors(interior, kind):
 
 def test_zero_clusters_rejected(interior):
     cfg, rec = interior
-    with pytest.raises(ValueError, match="n_clusters must be a whole number >= 1 or auto"):
+    with pytest.raises(ValueError, match=r"n_clusters must be an integer >= 1 \(or auto"):
         segment_recording(rec, {**cfg, "n_clusters": 0}, optimizers.create("ssa_ga"), seed=0)
 
 
@@ -201,9 +201,10 @@ def test_a_window_alone_takes_the_p_step_alone_smoothing(monkeypatch):
         cfg = _config(f"window.context={context}", *overrides)
         rec = load_scene(cfg["scene"], seed=0, window_events=1500, windows=2)
         segment_recording(rec, cfg, optimizers.create("ssa_ga"), seed=0)
-    ccfg = cfg["clustering"]
-    span = (p_step_sigmas(ccfg["p_step_sigma"]), ccfg["p_step_stride"])
-    alone = (p_step_sigmas(ccfg["p_step_alone"]["sigma"]), ccfg["p_step_alone"]["stride"])
+    clustering = settings_from(cfg).clustering
+    span = (smoothing(clustering.p_step_sigma, "sigma"), clustering.p_step_stride)
+    own = clustering.p_step_alone
+    alone = (smoothing(own.sigma, "sigma"), own.stride)
     assert span != alone
     assert seen == [span, span, alone, alone]  # two windows with context, then without
 
@@ -221,7 +222,7 @@ def test_approaching_box_contrast_peaks_at_its_depth_velocity():
     -2.5). Built on the dense depth band only, the truth beats vz = 0 and is in the box."""
     cfg = _config("denoise.enabled=false", scene="approach")  # the band filter alone
     rec = load_scene(cfg["scene"], seed=0, window_events=15000)
-    prepared = prepare(rec, cfg)
+    prepared = prepare(rec, settings_from(cfg))
     assert prepared.grid.voxel_size[2] < 0.05
     labels = rec.ground_truth.labels
     assert np.all(labels[~prepared.valid] == -1)  # only noise events are left out
@@ -260,7 +261,8 @@ def test_the_depth_change_cap_bounds_vz_by_the_median_depth_not_by_outliers():
 
 @pytest.mark.parametrize("value", [0, -1.0, "far", True])
 def test_a_bad_depth_change_cap_is_refused_before_the_run(value):
-    with pytest.raises(ValueError, match="max_depth_change must be a positive"):
+    pattern = r"clustering\.max_depth_change must be a (positive )?number or null"
+    with pytest.raises(ValueError, match=pattern):
         check_config(_config(f"clustering.max_depth_change={value}"))
 
 
@@ -288,17 +290,18 @@ def test_events_on_occlusion_edges_do_not_steer_the_velocities():
 
     cfg = _config("clustering.step_edges=false", scene="approach")
     _, window = next(load_scene(cfg["scene"], seed=0, window_events=4000).windows())
-    prepared = prepare(window, cfg)
+    settings = settings_from(cfg)
+    prepared = prepare(window, settings)
     assert prepared.on_edge.any() and not prepared.on_edge.all()
-    evaluator, subset = _step_subset(prepared, 0.0, cfg, seed=0)
+    evaluator, subset = _step_subset(prepared, 0.0, settings, seed=0)
     assert evaluator.n_events == len(subset) == int((~prepared.on_edge).sum())
     assert not prepared.on_edge[subset].any()
-    edges_too = {**cfg, "clustering": {**cfg["clustering"], "step_edges": True}}
+    edges_too = replace(settings, clustering=replace(settings.clustering, step_edges=True))
     assert _step_subset(prepared, 0.0, edges_too, seed=0) is None  # all 4,000 events
 
 
-def _with_init(cfg: dict, **init) -> dict:
-    return {**cfg, "init": {**cfg["init"], **init}}
+def _with_init(cfg: dict, **init) -> Settings:
+    return settings_from({**cfg, "init": {**cfg["init"], **init}})
 
 
 def test_auto_init_keeps_the_start_with_the_highest_total_contrast(interior):
@@ -345,13 +348,14 @@ def test_previous_init_labels_events_by_one_p_step_at_the_given_velocities(inter
     velocity, where every event falls to cluster 0; swapping the velocities swaps the labels."""
     cfg, rec = interior
     _, window = next(rec.windows())
-    prepared = prepare(window, cfg)
-    evaluator = window_objective(prepared, reference_time(prepared.t, "middle"), cfg)
-    bounds = search_bounds(prepared, cfg["clustering"]["max_displacement"])
+    settings = settings_from(cfg)
+    prepared = prepare(window, settings)
+    evaluator = window_objective(prepared, reference_time(prepared.t, "middle"), settings)
+    bounds = search_bounds(prepared, settings.clustering.max_displacement)
     truth = np.array(list(rec.ground_truth.motions.values()))
 
     def start(thetas):
-        return previous_init(thetas, prepared, evaluator, cfg["clustering"], bounds, alone=True)
+        return previous_init(thetas, prepared, evaluator, settings.clustering, bounds, alone=True)
 
     def accuracy(init):
         labels = np.full(len(window.events), -1)
@@ -389,20 +393,28 @@ def test_segment_recording_hands_each_window_the_one_befores_velocities(monkeypa
         assert np.array_equal(given, before.clustering.thetas)
 
 
-@pytest.mark.parametrize("starts", [[], ["image_flow", "kmeans"], ["previous"], None])
-def test_auto_init_rejects_unknown_starts(interior, starts):
+@pytest.mark.parametrize(
+    ("starts", "message"),
+    [
+        ([], r"init\.auto must list one or more of"),
+        (["image_flow", "kmeans"], r"init\.auto must list one or more of"),
+        (["previous"], r"init\.auto must list one or more of"),
+        (None, r"init\.auto must be a list of strings, got None"),
+    ],
+)
+def test_auto_init_rejects_unknown_starts(interior, starts, message):
     cfg, rec = interior
     _, window = next(rec.windows())
-    with pytest.raises(ValueError, match=r"init\.auto must list one or more of"):
+    with pytest.raises(ValueError, match=message):
         segment_window(
             window, _with_init(cfg, method="auto", auto=starts), optimizers.create("ssa_ga"), seed=0
         )
 
 
-def _with_sigma(cfg: dict, sigma) -> dict:
-    """``cfg`` with the P-step smoothing of a window clustered alone set to ``sigma``."""
+def _with_sigma(cfg: dict, sigma) -> Settings:
+    """``cfg``'s settings with the P-step smoothing of a window clustered alone ``sigma``."""
     alone = {**cfg["clustering"]["p_step_alone"], "sigma": sigma}
-    return {**cfg, "clustering": {**cfg["clustering"], "p_step_alone": alone}}
+    return settings_from({**cfg, "clustering": {**cfg["clustering"], "p_step_alone": alone}})
 
 
 def test_p_step_sigma_pair_is_image_then_depth(interior):
@@ -419,7 +431,7 @@ def test_p_step_sigma_pair_is_image_then_depth(interior):
     number, pair, deeper = run(3.0), run([3.0, 3.0]), run([3.0, 1.0])
     assert np.array_equal(number.probabilities, pair.probabilities)
     assert not np.array_equal(number.probabilities, deeper.probabilities)
-    assert p_step_sigmas([2, 3]) == (2.0, 2.0, 3.0) and p_step_sigmas(2.5) == (2.5, 2.5, 2.5)
+    assert smoothing([2, 3], "k") == (2.0, 2.0, 3.0) and smoothing(2.5, "k") == (2.5, 2.5, 2.5)
 
 
 @pytest.mark.parametrize(
@@ -448,7 +460,7 @@ def test_check_config_refuses_settings_a_run_would_reach_late(override, message)
 
 
 def test_check_config_accepts_every_shipped_default():
-    check_config(_config())
+    assert check_config(_config()) == settings_from(_config())
     check_config(_config("+preset=one_window"))
     check_config(_config("+preset=fast"))
 
@@ -457,7 +469,7 @@ def test_check_config_accepts_every_shipped_default():
 def test_p_step_sigma_rejects_bad_values(interior, sigma):
     cfg, rec = interior
     _, window = next(rec.windows())
-    with pytest.raises(ValueError, match=r"p_step_alone\.sigma must be a number >= 0 or a pair"):
+    with pytest.raises(ValueError, match=r"clustering\.p_step_alone\.sigma must be a number"):
         segment_window(window, _with_sigma(cfg, sigma), optimizers.create("ssa_ga"), seed=0)
 
 
@@ -481,25 +493,22 @@ def test_refit_measures_velocities_off_the_occlusion_edges():
     points = np.column_stack([anchors, np.full(n, 3.0)]) + velocity * t[:, None]
     grid = grid_around(points, np.array([0.025, 0.025, 0.5]), 0.1, 10**7)
     prepared = Prepared(points, t, np.ones(n, bool), grid, 3, "m/s", None, on_edge)
-    cfg = _config()
+    settings = settings_from(_config())
     bounds = np.array([[-2.0, 2.0]] * 3)
     start = wrong[None, :]  # the loop, on every event, followed the edge events
     loop = ClusteringResult(
         start, np.ones((n, 1)), np.ones(1), [IterationRecord(1, np.ones(1), start, 0, 0.0)]
     )
-    refit = refit_velocities(loop, prepared, 0.0, cfg, bounds, seed=0)
+    refit = refit_velocities(loop, prepared, 0.0, settings, bounds, seed=0)
     assert np.linalg.norm(refit.thetas[0, :2] - true[:2]) < 0.02  # vz: under a voxel here
-    reach = cfg["clustering"]["refit"]["radius"] * (bounds[:, 1] - bounds[:, 0])
+    reach = settings.clustering.refit.radius * (bounds[:, 1] - bounds[:, 0])
     assert np.all(np.abs(refit.thetas[0] - start[0]) <= reach + 1e-12)
     unmarked = replace(prepared, on_edge=None)
-    stays = refit_velocities(loop, unmarked, 0.0, cfg, bounds, seed=0).thetas[0]
+    stays = refit_velocities(loop, unmarked, 0.0, settings, bounds, seed=0).thetas[0]
     assert np.linalg.norm(stays[:2] - wrong[:2]) < 0.02
     assert refit.probabilities is loop.probabilities
     assert np.array_equal(refit.history[-1].thetas, start)
-    off = {
-        **cfg,
-        "clustering": {**cfg["clustering"], "refit": {"evals": 0, "optimizer": "x", "radius": 0.1}},
-    }
+    off = replace(settings, clustering=replace(settings.clustering, refit=RefitSettings(evals=0)))
     assert refit_velocities(loop, prepared, 0.0, off, bounds, seed=0) is loop
 
 
@@ -522,14 +531,16 @@ def test_relabelling_is_one_p_step_at_the_final_velocities(interior):
 
     def relabel(top, alone):
         ccfg = cfg["clustering"]
-        return {
-            **cfg,
-            "clustering": {
-                **ccfg,
-                "relabel_sigma": top,
-                "p_step_alone": {**ccfg["p_step_alone"], "relabel_sigma": alone},
-            },
-        }
+        return settings_from(
+            {
+                **cfg,
+                "clustering": {
+                    **ccfg,
+                    "relabel_sigma": top,
+                    "p_step_alone": {**ccfg["p_step_alone"], "relabel_sigma": alone},
+                },
+            }
+        )
 
     def run(top, alone):
         return segment_window(window, relabel(top, alone), optimizers.create("ssa_ga"), seed=0)
@@ -538,7 +549,7 @@ def test_relabelling_is_one_p_step_at_the_final_velocities(interior):
     assert "relabel" not in loop.timings and "relabel" not in top_only.timings
     assert np.array_equal(loop.labels, top_only.labels)
     assert np.array_equal(loop.clustering.thetas, on.clustering.thetas)
-    evaluator = window_objective(loop.prepared, loop.t_ref, cfg)
+    evaluator = window_objective(loop.prepared, loop.t_ref, settings_from(cfg))
     thetas, p = loop.clustering.thetas, loop.clustering.probabilities
     prior = prior_weights(loop.prepared, thetas, p, cfg["clustering"]["relabel_prior_scale"])
     expected = p_step(evaluator, thetas, p, (1.0, 1.0, 0.5), 1, prior)
@@ -553,7 +564,7 @@ def test_prior_weights_are_one_where_the_motions_agree_and_fall_with_their_gap(i
     ones, rising with the scale; one cluster has no prior."""
     cfg, rec = interior
     _, window = next(rec.windows())
-    prepared = prepare(window, cfg)
+    prepared = prepare(window, settings_from(cfg))
     truth = np.array(list(rec.ground_truth.motions.values()))
     p = np.full((len(prepared.points), 2), 0.5)
     same = prior_weights(prepared, np.array([truth[0], truth[0]]), p, 5.0)
@@ -566,20 +577,21 @@ def test_prior_weights_are_one_where_the_motions_agree_and_fall_with_their_gap(i
 
 @pytest.mark.parametrize("value", ["0", "-2", "wide"])
 def test_a_bad_relabel_prior_scale_is_refused_before_the_run(value):
-    with pytest.raises(ValueError, match=r"clustering\.relabel_prior_scale must be a positive"):
+    pattern = r"clustering\.relabel_prior_scale must be a (positive )?number or null"
+    with pytest.raises(ValueError, match=pattern):
         check_config(_config(f"clustering.relabel_prior_scale={value}"))
 
 
 @pytest.mark.parametrize("value", ["-1", "2.5", "wide"])
 def test_a_bad_edge_radius_is_refused_before_the_run(value):
-    with pytest.raises(ValueError, match=r"edpa\.edge_radius must be an integer >= 0"):
+    with pytest.raises(ValueError, match=r"edpa\.edge_radius must be an integer( >= 0)?, got"):
         check_config(_config(f"edpa.edge_radius={value}"))
 
 
 @pytest.mark.parametrize("value", ["-1.0", "[1.0,2.0,3.0]", "sharp"])
 @pytest.mark.parametrize("key", ["relabel_sigma", "p_step_alone.relabel_sigma"])
 def test_a_bad_relabel_sigma_is_refused_before_the_run(value, key):
-    with pytest.raises(ValueError, match=rf"clustering\.{key} must be a number >= 0"):
+    with pytest.raises(ValueError, match=rf"clustering\.{key} must be a number"):
         check_config(_config(f"clustering.{key}={value}"))
 
 
@@ -602,9 +614,9 @@ def test_edpa_edge_radius_reaches_the_lifted_points_of_edge_events_only():
     box's outline), no other."""
     cfg = _config(scene="approach")
     _, window = next(load_scene(cfg["scene"], seed=0, window_events=4000).windows())
-    still = prepare(window, cfg)
-    cfg_moving = {**cfg, "edpa": {**cfg["edpa"], "edge_radius": 8}}
-    moving = prepare(window, cfg_moving)
+    settings = settings_from(cfg)
+    still = prepare(window, settings)
+    moving = prepare(window, replace(settings, edpa=replace(settings.edpa, edge_radius=8)))
     edge = still.on_edge
     assert edge is not None and edge.any() and np.array_equal(edge, moving.on_edge)
     np.testing.assert_array_equal(moving.points[~edge], still.points[~edge])

@@ -8,6 +8,7 @@ import numpy as np
 import optimizers
 from spatialseg.clustering import Repair, weak_cluster, worst_explained
 from spatialseg.scenes import load_scene
+from spatialseg.settings import settings_from
 from spatialseg.window import segment_window
 from tests.test_pipeline import _config
 
@@ -52,6 +53,6 @@ def test_n_clusters_auto_finds_one_two_and_three_motions():
             scene_cfg["objects"] = scene_cfg["objects"][:1]
         rec = load_scene(scene_cfg, seed=0, window_events=15000)
         _, window = next(rec.windows())
-        res = segment_window(window, cfg, optimizers.create("ssa_ga"), seed=0)
+        res = segment_window(window, settings_from(cfg), optimizers.create("ssa_ga"), seed=0)
         found[len(rec.ground_truth.motions)] = len(res.clustering.thetas)
     assert found == {1: 1, 2: 2, 3: 3}

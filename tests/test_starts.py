@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -9,8 +11,9 @@ import optimizers
 from spatialseg import motion_init, starts
 from spatialseg.clustering import initial_memberships
 from spatialseg.config import compose_config
-from spatialseg.points import depth_change_cap, prepare, search_bounds
+from spatialseg.points import prepare, search_bounds
 from spatialseg.scenes import load_scene
+from spatialseg.settings import InitSettings, Settings, settings_from
 from spatialseg.starts import (
     StartInput,
     available_starts,
@@ -37,18 +40,28 @@ def window(request):
         "+scene=interior", f"model={request.param}", "init.tiles.evals=10", "init.tiles.rounds=1"
     )
     _, win = next(load_scene(cfg["scene"], seed=0, window_events=2000).windows())
-    prepared = prepare(win, cfg)
-    ccfg = cfg["clustering"]
-    bounds = search_bounds(prepared, float(ccfg["max_displacement"]), depth_change_cap(ccfg))
-    return cfg, win, prepared, bounds
+    settings = settings_from(cfg)
+    prepared = prepare(win, settings)
+    clustering = settings.clustering
+    bounds = search_bounds(prepared, clustering.max_displacement, clustering.max_depth_change)
+    return settings, win, prepared, bounds
+
+
+def _with_method(settings: Settings, name: str) -> Settings:
+    return replace(settings, init=replace(settings.init, method=name))
 
 
 @pytest.mark.parametrize("name", available_starts())
 def test_every_start_gives_k_velocities_and_a_label_per_point(window, name):
-    cfg, win, prepared, bounds = window
-    method_cfg = {**cfg, "init": {**cfg["init"], "method": name}}
+    settings, win, prepared, bounds = window
     init = initialise(
-        win, prepared, method_cfg, K, bounds, seed=0, optimizer=optimizers.create("ssa_ga")
+        win,
+        prepared,
+        _with_method(settings, name),
+        K,
+        bounds,
+        seed=0,
+        optimizer=optimizers.create("ssa_ga"),
     )
     assert isinstance(init, motion_init.InitResult)
     assert init.thetas.shape == (K, 3) and np.isfinite(init.thetas).all()
@@ -64,8 +77,8 @@ def test_every_start_gives_k_velocities_and_a_label_per_point(window, name):
         prepared.grid.voxel_size,
         init.labels,
         K,
-        mode=cfg["clustering"]["init_memberships"],
-        confidence=float(cfg["clustering"]["init_confidence"]),
+        mode=settings.clustering.init_memberships,
+        confidence=settings.clustering.init_confidence,
     )
     assert p.shape == (m, K)
     np.testing.assert_allclose(p.sum(axis=1), 1.0, rtol=1e-6)
@@ -77,7 +90,7 @@ def test_the_shipped_starts_are_registered():
 
 @pytest.mark.parametrize("name", ["kmeans", "auto", "previous", ["tiles"], None])
 def test_an_unknown_start_is_refused_in_one_line_naming_the_valid_ones(name):
-    for refuse in (start_named, lambda n: init_candidates({"method": n, "auto": None})):
+    for refuse in (start_named, lambda n: init_candidates(InitSettings(method=n, auto=()))):
         if name == "auto" and refuse is not start_named:
             continue  # init_candidates reads auto as init.auto
         with pytest.raises(ValueError) as error:
@@ -91,7 +104,7 @@ def test_a_registered_start_is_selectable_with_no_other_edit(monkeypatch, window
     """A function with the common signature, registered, is an init.method and an init.auto
     start; names taken (by another start, auto, previous) are refused."""
     monkeypatch.setattr(starts, "_REGISTRY", dict(starts._REGISTRY))
-    cfg, win, prepared, bounds = window
+    settings, win, prepared, bounds = window
 
     @register_start("still")
     def still(given: StartInput) -> motion_init.InitResult:
@@ -100,14 +113,12 @@ def test_a_registered_start_is_selectable_with_no_other_edit(monkeypatch, window
         return motion_init.InitResult(np.zeros((given.k, 3)), flows, 0, True, labels)
 
     assert "still" in available_starts() and start_named("still") is still
-    assert init_candidates({"method": "still", "auto": None}) == ["still"]
-    assert init_candidates({"method": "auto", "auto": ["still", "previous"]}) == [
+    assert init_candidates(InitSettings(method="still", auto=())) == ["still"]
+    assert init_candidates(InitSettings(method="auto", auto=("still", "previous"))) == [
         "still",
         "previous",
     ]
-    init = initialise(
-        win, prepared, {**cfg, "init": {**cfg["init"], "method": "still"}}, K, bounds, seed=0
-    )
+    init = initialise(win, prepared, _with_method(settings, "still"), K, bounds, seed=0)
     assert init.thetas.shape == (K, 3) and init.fallback
     for taken in ("tiles", "auto", "previous", ""):
         with pytest.raises(ValueError, match="start"):

@@ -24,6 +24,7 @@ from spatialseg.recording import (
     check_event_times,
 )
 from spatialseg.scenes import load_scene
+from spatialseg.settings import settings_from
 from spatialseg.window import check_events_per_cluster
 from tests.test_cli import spatialseg as run_cli
 
@@ -138,7 +139,8 @@ def test_the_shipped_road_recording_passes():
     rec = load_scene(scene, seed=0, window_events=15_000)
     check_event_times(rec)
     depth = OmegaConf.to_container(OmegaConf.load(REPO / "conf/depth/ground_plane.yaml"))
-    used = with_configured_depth(rec, {"depth": depth, "window": {"events": 15_000}})
+    settings = settings_from({"depth": depth, "window": {"events": 15_000}})
+    used = with_configured_depth(rec, settings)
     check_depth_maps(used)
     assert len(used.depth_maps) == 6
 
