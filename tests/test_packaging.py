@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import configparser
+import importlib.metadata
 import json
 import shutil
 import subprocess
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+import spatialseg as installed
 from spatialseg.config import conf_dir, config_roots, group_options
 from tests.test_cli import spatialseg
 
@@ -57,6 +59,20 @@ def wheel(tmp_path_factory) -> Iterator[zipfile.ZipFile]:
     (built,) = out.glob("spatialseg-*.whl")
     with zipfile.ZipFile(built) as archive:
         yield archive
+
+
+def test_the_suite_runs_the_installed_package():
+    """The tests import the package pip installed: the checkout for an editable install,
+    the venv's copy for a wheel (CI installs one; pytest's --import-mode=append keeps the
+    checkout behind site-packages on sys.path)."""
+    dist = importlib.metadata.distribution("spatialseg")
+    direct = json.loads(dist.read_text("direct_url.json") or "{}")
+    if direct.get("dir_info", {}).get("editable", False):
+        expected = Path(direct["url"].removeprefix("file://")) / "spatialseg"
+    else:
+        expected = Path(str(dist.locate_file("spatialseg")))
+    assert Path(installed.__file__).resolve().parent == expected.resolve()
+    assert conf_dir().is_dir() and (conf_dir() / "config.yaml").is_file()
 
 
 def test_wheel_holds_every_config_module_and_py_typed(wheel):

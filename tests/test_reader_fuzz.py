@@ -224,13 +224,13 @@ def test_damaged_files_read_or_fail_in_one_line(tmp_path: Path, name: str) -> No
 
 def test_damaged_aedat4_never_panics_or_aborts(tmp_path: Path) -> None:
     """Every AEDAT4 mutation in one child process: an abort shows in its exit status."""
-    script = (
-        "import sys; from pathlib import Path; from tests.test_reader_fuzz import fuzz; "
-        "print(dict(fuzz('aedat4', Path(sys.argv[1]))))"
+    script = (  # -P and append: the installed package, as pytest imports it, and the tests
+        f"import sys; sys.path.append({str(REPO)!r}); from pathlib import Path; "
+        "from tests.test_reader_fuzz import fuzz; print(dict(fuzz('aedat4', Path(sys.argv[1]))))"
     )
     res = subprocess.run(
-        [sys.executable, "-c", script, str(tmp_path)],
-        cwd=REPO,
+        [sys.executable, "-P", "-c", script, str(tmp_path)],
+        cwd=tmp_path,
         capture_output=True,
         text=True,
         timeout=300,
