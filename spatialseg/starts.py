@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+import optimizers
 from spatialseg import hypotheses, motion_init
 from spatialseg.clustering import p_step
 from spatialseg.grid import project_jacobian
@@ -36,10 +37,8 @@ __all__ = [
     "Start",
     "StartInput",
     "available_starts",
-    "check_optimizer_name",
     "init_candidates",
     "initialise",
-    "named_optimizer",
     "previous_init",
     "register_start",
     "start_named",
@@ -115,23 +114,6 @@ def start_named(name: Any) -> Start:
     return _REGISTRY[name]
 
 
-def check_optimizer_name(name: str, key: str) -> None:
-    """Raise a one-line error unless ``name`` is an optimiser preset (``key``: the
-    config key that named it)."""
-    from spatialseg.config import check_option
-
-    check_option("optimizer", name, key)
-
-
-def named_optimizer(name: str, key: str) -> Any:
-    """The optimiser preset ``name`` (:func:`optimizers.preset`; ``key``: the config key
-    that named it, for the error message)."""
-    import optimizers
-
-    check_optimizer_name(name, key)
-    return optimizers.preset(name)
-
-
 def _tiles_init(given: StartInput) -> motion_init.InitResult | None:
     """Initial motions from each image tile's own contrast maximum and a greedy cover
     (:mod:`spatialseg.hypotheses`); None when fewer than ``k`` tiles are dense enough."""
@@ -153,7 +135,7 @@ def _tiles_init(given: StartInput) -> motion_init.InitResult | None:
         k,
         given.optimizer,
         given.bounds,
-        named_optimizer(params.refit, "init.tiles.refit"),
+        optimizers.preset(params.refit),
         evals=params.evals,
         rounds=params.rounds,
         explained=params.explained,

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+import optimizers
 from spatialseg import motion_init
 from spatialseg.clustering import (
     ClusteringResult,
@@ -50,7 +51,6 @@ from spatialseg.starts import (
     PREVIOUS,
     init_candidates,
     initialise,
-    named_optimizer,
     previous_init,
 )
 
@@ -315,7 +315,7 @@ def _step_stages(
         draw = np.random.default_rng(seed + 1).choice(len(pool), coarse.events, False)
         sample = pool[np.sort(draw)]
     grid = prepared.grid.coarsened(coarse.stride)
-    refine = named_optimizer(coarse.refine, "clustering.coarse.refine")
+    refine = optimizers.preset(coarse.refine)
     return (
         StepStage(
             window_objective(prepared, t_ref, settings, sample, grid), optimizer, budget, sample
@@ -443,7 +443,7 @@ def refit_velocities(
         return result
     index = off_edge_events(prepared, result.thetas.shape[0])
     evaluator = window_objective(prepared, t_ref, settings, index)
-    optimizer = named_optimizer(refit.optimizer, "clustering.refit.optimizer")
+    optimizer = optimizers.preset(refit.optimizer)
     reach = refit.radius * (bounds[:, 1] - bounds[:, 0])
     thetas = result.thetas.copy()
     for j in range(thetas.shape[0]):

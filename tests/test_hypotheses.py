@@ -15,7 +15,6 @@ from spatialseg.metrics import segmentation_metrics
 from spatialseg.points import ModelEvaluator
 from spatialseg.scenes import load_scene
 from spatialseg.settings import settings_from
-from spatialseg.starts import named_optimizer
 from spatialseg.volume import VolumeObjective
 from spatialseg.window import segment_window
 
@@ -79,7 +78,7 @@ def test_tiles_group_events_and_recover_two_motions():
         2,
         optimizers.create("ssa_ga"),
         bounds,
-        named_optimizer("nlopt_bobyqa", "refit"),
+        optimizers.preset("nlopt_bobyqa"),
         evals=60,
         rounds=2,
         explained=0.85,
