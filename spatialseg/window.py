@@ -32,6 +32,7 @@ from spatialseg.clustering import (
     p_step,
     update_memberships,
 )
+from spatialseg.depth import make_depth_source
 from spatialseg.points import (
     ModelEvaluator,
     Prepared,
@@ -241,10 +242,13 @@ def check_config(settings: Settings | Mapping[str, Any]) -> Settings:
     """The run's :class:`~spatialseg.settings.Settings`, checked before any data is loaded or
     simulated (:func:`~spatialseg.settings.settings_from`), and the starts ``init.method``
     and ``init.auto`` name looked up in the registry of starts, which the settings do not
-    know (:func:`~spatialseg.starts.init_candidates`; ``init.auto`` is read only with auto)."""
+    know (:func:`~spatialseg.starts.init_candidates`; ``init.auto`` is read only with auto),
+    and the depth source's parameters (:func:`~spatialseg.depth.make_depth_source`)."""
     settings = settings_from(settings)
     init_candidates(settings.init)
     init_candidates(replace(settings.init, method="auto"))
+    if settings.depth.name != "onnx":  # building it is its check; onnx's loads the network
+        make_depth_source(settings.depth.as_config())
     return settings
 
 

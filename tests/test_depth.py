@@ -368,3 +368,20 @@ def test_composed_config_rejects_a_misspelt_depth_parameter():
     cfg = _compose("+denoise.radiu=2")
     with pytest.raises(ConfigError, match=re.escape("unknown config key 'denoise.radiu'")):
         validate_config(cfg, {"depth": "recording", "scene": "interior"})
+
+
+@pytest.mark.parametrize(
+    ("depth", "message"),
+    [
+        ({"name": "constant", "value": -1}, "depth.value must be a positive number"),
+        ({"name": "ground_plane", "pitch": 100}, "depth.pitch must be in (-90, 90) degrees"),
+        ({"name": "nope"}, "unknown depth source 'nope'"),
+    ],
+)
+def test_a_bad_depth_source_is_refused_by_the_up_front_check(depth, message):
+    """The run's check (before a scene is simulated or a file read) builds the depth source."""
+    from spatialseg.window import check_config
+
+    base = {"ground_plane": {"height": 1.5, "pitch": 10.0, "roll": 0.0, "far_depth": None}}
+    with pytest.raises(ValueError, match=re.escape(message)):
+        check_config({"depth": {**base.get(depth["name"], {}), **depth}})
