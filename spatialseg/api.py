@@ -262,7 +262,8 @@ def _configure(
         _assign(sections, key, value, known_only=True)
     cfg.update(sections, n_clusters=n_clusters, seed=seed)
     checked = check_config(cfg)
-    make_depth_source(checked.depth.as_config())
+    if checked.depth.name == "onnx":  # check_config builds every other source already
+        make_depth_source(checked.depth.as_config())
     if name is None:
         cfg["optimizer"] = {"_target_": f"{type(optimizer).__module__}.{type(optimizer).__name__}"}
         return cfg, checked, optimizer

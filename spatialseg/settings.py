@@ -20,7 +20,7 @@ import types
 import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -84,17 +84,8 @@ def _in_range(value: float, key: str, low: float, high: float, *, open_low: bool
 
 
 @dataclass(frozen=True)
-class Section:
-    """A config section: ``KEY`` is its dotted path, for the error messages."""
-
-    KEY: ClassVar[str] = ""
-
-
-@dataclass(frozen=True)
-class WindowSettings(Section):
+class WindowSettings:
     """How the events are cut into windows and how windows are run."""
-
-    KEY: ClassVar[str] = "window"
 
     #: Events per window: a simulated scene gets a depth map every this many events (the
     #: paper's 15,000); depth=constant/ground_plane likewise.
@@ -119,10 +110,8 @@ class WindowSettings(Section):
 
 
 @dataclass(frozen=True)
-class EdpaSettings(Section):
+class EdpaSettings:
     """EDPA: each event's depth from the two depth maps around it."""
-
-    KEY: ClassVar[str] = "edpa"
 
     #: drop: events without depth are left out (label -1); fill: the median of valid
     #: neighbours within fill_radius.
@@ -143,11 +132,9 @@ class EdpaSettings(Section):
 
 
 @dataclass(frozen=True)
-class DenoiseSettings(Section):
+class DenoiseSettings:
     """The background-activity filter: unsupported events are left out of the fit (still
     labelled, from the fitted motions)."""
-
-    KEY: ClassVar[str] = "denoise"
 
     enabled: bool = True
     #: Neighbourhood: pixels within this Chebyshev distance, the pixel itself excluded.
@@ -161,10 +148,8 @@ class DenoiseSettings(Section):
 
 
 @dataclass(frozen=True)
-class VolumeSettings(Section):
+class VolumeSettings:
     """The volume of warped events: its axes, bins and extent."""
-
-    KEY: ClassVar[str] = "volume"
 
     #: Warp reference time: start (T1) or middle of the window.
     t_ref: Literal["start", "middle"] = "middle"
@@ -193,10 +178,8 @@ class VolumeSettings(Section):
 
 
 @dataclass(frozen=True)
-class TilesSettings(Section):
+class TilesSettings:
     """init.method=tiles: each image tile's own contrast maximum, K kept by a greedy cover."""
-
-    KEY: ClassVar[str] = "init.tiles"
 
     #: Tile side, pixels.
     size: int = 16
@@ -224,10 +207,8 @@ class TilesSettings(Section):
 
 
 @dataclass(frozen=True)
-class InitSettings(Section):
+class InitSettings:
     """Initial motions and memberships (spatialseg.motion_init)."""
-
-    KEY: ClassVar[str] = "init"
 
     #: tiles, image_flow, time_surface (the paper's 3 planes), or auto: cluster from each
     #: start of ``auto`` and keep the highest total contrast.
@@ -259,11 +240,9 @@ class InitSettings(Section):
 
 
 @dataclass(frozen=True)
-class CoarseSettings(Section):
+class CoarseSettings:
     """Coarse-to-fine theta-step: the optimiser on a coarser grid and/or fewer events, then
     a local refinement at full resolution."""
-
-    KEY: ClassVar[str] = "clustering.coarse"
 
     #: The optimiser's grid this many times coarser in x and y (1 and events null: off).
     stride: int = 1
@@ -282,11 +261,9 @@ class CoarseSettings(Section):
 
 
 @dataclass(frozen=True)
-class PStepAloneSettings(Section):
+class PStepAloneSettings:
     """The P-step's smoothing for a window clustered alone (no neighbouring windows), whose
     volumes hold a third of the events: blurred more."""
-
-    KEY: ClassVar[str] = "clustering.p_step_alone"
 
     sigma: Sigma = 3.0
     stride: int = 2
@@ -295,11 +272,9 @@ class PStepAloneSettings(Section):
 
 
 @dataclass(frozen=True)
-class RefitSettings(Section):
+class RefitSettings:
     """After the loop, each velocity re-fitted once with the final memberships on the
     events off occlusion edges (their depth is reliable); memberships fixed."""
-
-    KEY: ClassVar[str] = "clustering.refit"
 
     #: The local optimiser's budget per cluster; 0: off (the loop's velocities).
     evals: int = 30
@@ -315,10 +290,8 @@ class RefitSettings(Section):
 
 
 @dataclass(frozen=True)
-class ClusteringSettings(Section):
+class ClusteringSettings:
     """Algorithm 1: the theta-step and P-step loop, its stopping rules and finishing steps."""
-
-    KEY: ClassVar[str] = "clustering"
 
     #: Rule 3: iteration limit.
     max_iterations: int = 20
@@ -409,11 +382,9 @@ def _check_p_step(sigma: Sigma, stride: int, prefix: str) -> None:
 
 
 @dataclass(frozen=True)
-class ModelSettings(Section):
+class ModelSettings:
     """The motion model: spatial (EDPA points, 3-D velocities in m/s) or planar (the image
     plane, 2-D velocities in px/s)."""
-
-    KEY: ClassVar[str] = "model"
 
     name: Literal["spatial", "planar"] = "spatial"
     #: Voxel size in x, y: spatial, as a multiple of the pixel footprint at the median
@@ -432,10 +403,8 @@ class ModelSettings(Section):
 
 
 @dataclass(frozen=True)
-class ObjectiveSettings(Section):
+class ObjectiveSettings:
     """The contrast of a volume of warped events (spatialseg.objectives' registry)."""
-
-    KEY: ClassVar[str] = "objective"
 
     #: variance (the paper's) or sum_of_squares, or any registered objective.
     name: str = "variance"
@@ -453,11 +422,9 @@ class ObjectiveSettings(Section):
 
 
 @dataclass(frozen=True)
-class DepthSettings(Section):
+class DepthSettings:
     """Where EDPA's depth maps come from: ``name`` and that source's own parameters
     (spatialseg.depth's sources check them when they are built)."""
-
-    KEY: ClassVar[str] = "depth"
 
     name: str = "recording"
     params: Mapping[str, Any] = field(default_factory=dict)
@@ -626,30 +593,16 @@ def _describe(hint: Any) -> str:
 def default_tree() -> dict[str, Any]:
     """The defaults as the nested plain mapping a config file would hold (the Hydra app's
     base config; lists for tuples, the depth section flattened)."""
-
-    def plain(value: Any) -> Any:
-        if isinstance(value, tuple):
-            return [plain(v) for v in value]
-        return value
-
-    tree = {}
-    for section in SECTIONS:
-        value = getattr(Settings(), section)
-        if isinstance(value, DepthSettings):
-            tree[section] = value.as_config()
-        elif dataclasses.is_dataclass(value):
-            tree[section] = _plain_section(value, plain)
-        else:
-            tree[section] = value
+    defaults = Settings()
+    tree = _plain(defaults)
+    tree["depth"] = defaults.depth.as_config()
     return tree
 
 
-def _plain_section(section: Any, plain: Any) -> dict[str, Any]:
-    """A section dataclass as a nested dict of plain values."""
-    out = {}
-    for f in dataclasses.fields(section):
-        value = getattr(section, f.name)
-        out[f.name] = (
-            _plain_section(value, plain) if dataclasses.is_dataclass(value) else plain(value)
-        )
-    return out
+def _plain(value: Any) -> Any:
+    """A settings value as plain YAML values: sections as dicts, tuples as lists."""
+    if dataclasses.is_dataclass(value):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, tuple):
+        return [_plain(v) for v in value]
+    return value
