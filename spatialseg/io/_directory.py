@@ -12,7 +12,6 @@ import math
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
-import matplotlib.image
 import numpy as np
 
 from spatialseg.io._atomic import atomic_directory
@@ -106,6 +105,8 @@ def _read_depth_maps(root: Path) -> list[DepthMap]:
 
 def _read_image(file: Path) -> np.ndarray:
     """A keyframe image as uint8: (H, W) if its colour channels are equal, else (H, W, 3)."""
+    import matplotlib.image  # on first use: a recording without images never loads it
+
     with decoding(file, "an image"):
         image = matplotlib.image.imread(file)
     if image.dtype.kind == "f":  # matplotlib reads PNG pixels as floats in [0, 1]
@@ -297,6 +298,8 @@ def write_recording(
     """Write a recording directory atomically (temporary sibling, then rename into place)."""
     if events_format not in _WRITE_FORMATS:
         raise ValueError(f"events_format={events_format!r}; use 'txt', 'h5' or 'npz'")
+    import matplotlib.image  # on first use, as in _read_image
+
     images = [_keyframe_rgb(i, k) for i, k in enumerate(recording.keyframes)]
     depths = [(d.t, d.depth) for d in recording.depth_maps]
     with atomic_directory(Path(path), overwrite=overwrite) as tmp:
