@@ -376,7 +376,6 @@ class LiveRun:
         """Log the run's final metrics, unlogged windows and files; return how to open it."""
         if self._thread is None:
             return None
-        log.info("logging to MLflow ...")  # the store's logging takes seconds at a run's end
         windows = summary["windows"]
         prefixed = self._windows > 0 or len(windows) > 1
         points = [(key, value, 0) for key, value in _finals(summary)]
@@ -410,6 +409,9 @@ class LiveRun:
         self, points: list[tuple[str, float, int]], stamp: int, out_dir: Path
     ) -> str | None:
         """Send the final ``points`` and the output files; how to open the run, or None."""
+        if self._client is None:
+            return None
+        log.info("logging to MLflow ...")  # the store's logging takes seconds at a run's end
         sent = self._send(lambda client: _log_metrics(client, self.run_id, points, stamp))
         if sent and self._send(lambda client: _log_outputs(client, self.run_id, out_dir)):
             return browse_hint(str(self._client.tracking_uri), self.run_id)
