@@ -63,7 +63,6 @@ _NULLABLE = frozenset(
         "volume.min_band_share",
         "init.tiles.explained",
         "clustering.step_events",
-        "clustering.fit_events_per_cluster",
         "clustering.max_depth_change",
         "clustering.relabel_sigma",
         "clustering.relabel_prior_scale",

@@ -8,7 +8,7 @@ the warp's reference time and :class:`ModelEvaluator`, one cluster's contrast of
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,7 +24,6 @@ from spatialseg.volume import VolumeObjective
 __all__ = [
     "ModelEvaluator",
     "Prepared",
-    "fit_sample",
     "fit_support",
     "off_edge_events",
     "p_step_settings",
@@ -103,50 +102,6 @@ def prepare(window: Recording, settings: Settings) -> Prepared:
     on_edge = lifted.on_edge[lifted.valid][fit]
     rest = (lifted.points[~fit], lifted.t[~fit], rest_valid)
     return Prepared(points, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
-
-
-def fit_sample(prepared: Prepared, limit: int | None, seed: int) -> Prepared:
-    """``prepared`` fitted on a random sample of at most ``limit`` of its points (drawn with
-    ``seed``); the others join ``rest``, labelled once at the end from the fitted motions.
-    None, or no more points than ``limit``: ``prepared`` itself.
-
-    Decision: a velocity is set by the sharpness of its events' warped volume, which a
-    sample of tens of thousands of events measures as well as millions do, so the starts,
-    the loop and the refit need not grow with the window; every event is still labelled,
-    in one pass (issue #27: fit on few events, label all once)."""
-    n = len(prepared.points)
-    if limit is None or n <= limit:
-        return prepared
-    keep = np.zeros(n, dtype=bool)
-    keep[np.random.default_rng(seed).choice(n, limit, replace=False)] = True
-    fitted = np.flatnonzero(prepared.valid)
-    valid = prepared.valid.copy()
-    valid[fitted[~keep]] = False
-    rest_points, rest_t, rest_mask = _rest_with(prepared, fitted[~keep], ~keep)
-    return replace(
-        prepared,
-        points=prepared.points[keep],
-        t=prepared.t[keep],
-        valid=valid,
-        on_edge=None if prepared.on_edge is None else prepared.on_edge[keep],
-        rest=(rest_points, rest_t, rest_mask),
-    )
-
-
-def _rest_with(
-    prepared: Prepared, events: np.ndarray, dropped: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``prepared.rest`` joined by its points ``dropped`` (a mask over the points; their
-    event indices ``events``), kept in event order as ``rest``'s mask reads them."""
-    mask = np.zeros(len(prepared.valid), dtype=bool)
-    mask[events] = True
-    points, t = prepared.points[dropped], prepared.t[dropped]
-    if prepared.rest is not None:
-        mask |= prepared.rest[2]
-        order = np.argsort(np.concatenate([np.flatnonzero(prepared.rest[2]), events]))
-        points = np.vstack([prepared.rest[0], points])[order]
-        t = np.concatenate([prepared.rest[1], t])[order]
-    return points, t, mask
 
 
 def fit_support(window: Recording, denoise: DenoiseSettings) -> np.ndarray:

@@ -308,10 +308,6 @@ class ClusteringSettings:
     evals_per_step: int = 30
     #: Theta-step on a random sample of at most this many events (P-step on all); null: all.
     step_events: int | None = 20000
-    #: The starts, loop and refit on a random sample of at most this many events per
-    #: cluster (n_clusters, or max_clusters with auto); the rest labelled once at the end.
-    #: null: every event.
-    fit_events_per_cluster: int | None = 25000
     #: Events on an occlusion edge in the theta-step too; false: the P-step labels them,
     #: velocities ignore them.
     step_edges: bool = True
@@ -356,9 +352,6 @@ class ClusteringSettings:
             )
         integer_setting(self.evals_per_step, "clustering.evals_per_step", 1)
         integer_setting(self.step_events, "clustering.step_events", 1, optional=True)
-        integer_setting(
-            self.fit_events_per_cluster, "clustering.fit_events_per_cluster", 1, optional=True
-        )
         _in_range(self.max_displacement, "clustering.max_displacement", 0, 1, open_low=True)
         optional_positive(self.max_depth_change, "clustering.max_depth_change")
         _in_range(self.init_confidence, "clustering.init_confidence", 0, 1, open_low=True)

@@ -36,7 +36,6 @@ from spatialseg.depth import make_depth_source
 from spatialseg.points import (
     ModelEvaluator,
     Prepared,
-    fit_sample,
     off_edge_events,
     p_step_settings,
     prepare,
@@ -128,7 +127,7 @@ def segment_window(
     alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    prepared = fit_sample(prepare(window, settings), _fit_limit(settings), seed)
+    prepared = prepare(window, settings)
     check_events_per_cluster(prepared.points.shape[0], k, window.name)
     t_ref = reference_time(prepared.t, settings.volume.t_ref)
     xy = np.column_stack([window.events.x, window.events.y])[prepared.valid].astype(np.float64)
@@ -251,15 +250,6 @@ def check_config(settings: Settings | Mapping[str, Any]) -> Settings:
     if settings.depth.name != "onnx":  # building it is its check; onnx's loads the network
         make_depth_source(settings.depth.as_config())
     return settings
-
-
-def _fit_limit(settings: Settings) -> int | None:
-    """The most events a window's motions are fitted on
-    (``clustering.fit_events_per_cluster`` per cluster), or None: all."""
-    per_cluster = settings.clustering.fit_events_per_cluster
-    if per_cluster is None:
-        return None
-    return per_cluster * (settings.cluster_count or settings.clustering.max_clusters)
 
 
 def _with_start(settings: Settings, method: str) -> Settings:

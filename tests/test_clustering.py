@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
@@ -222,59 +220,3 @@ def test_coarse_to_fine_theta_step():
     pattern = r"clustering\.coarse\.events must be an integer >= 1 or null"
     with pytest.raises(ValueError, match=pattern):
         settings_from(bad)
-
-
-def test_a_fit_sample_leaves_the_rest_in_event_order():
-    """points.fit_sample: at most ``limit`` points fitted, the others joined to ``rest`` in
-    the order of their events, so rest's mask reads them back to the right events."""
-    from spatialseg.grid import VoxelGrid
-    from spatialseg.points import Prepared, fit_sample
-
-    n = 50
-    labelled = np.ones(n, dtype=bool)
-    labelled[[3, 17]] = False  # events without depth: neither fitted nor rest
-    rest_mask = np.zeros(n, dtype=bool)
-    rest_mask[[5, 6, 40]] = True  # left out already (noise)
-    valid = labelled & ~rest_mask
-    coords = np.arange(n, dtype=np.float64)[:, None].repeat(3, axis=1)  # a point is its event
-    grid = VoxelGrid(origin=np.zeros(3), voxel_size=np.ones(3), shape=(n, n, n))
-    prepared = Prepared(
-        coords[valid],
-        coords[valid, 0] * 1e-3,
-        valid,
-        grid,
-        3,
-        "m/s",
-        on_edge=coords[valid, 0] % 2 == 0,
-        rest=(coords[rest_mask], coords[rest_mask, 0] * 1e-3, rest_mask),
-    )
-    sample = fit_sample(prepared, 20, seed=1)
-    assert len(sample.points) == 20 and sample.valid.sum() == 20
-    assert np.array_equal(sample.points[:, 0], np.flatnonzero(sample.valid))
-    assert np.array_equal(sample.on_edge, sample.points[:, 0] % 2 == 0)
-    points, t, mask = sample.rest
-    assert not (mask & sample.valid).any()
-    assert np.array_equal(mask | sample.valid, labelled)  # nothing lost, nothing added
-    assert np.array_equal(points[:, 0], np.flatnonzero(mask)) and np.allclose(
-        t, points[:, 0] * 1e-3
-    )
-    assert np.array_equal(fit_sample(prepared, 20, seed=1).valid, sample.valid)  # seeded
-    assert fit_sample(prepared, 45, seed=1) is prepared  # no more points than the limit
-
-
-def test_a_window_fitted_on_a_sample_labels_every_event():
-    """clustering.fit_events_per_cluster: the motions from a sample, every event labelled."""
-    overrides = ["+scene=interior", "clustering.fit_events_per_cluster=600"]
-    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-        cfg = OmegaConf.to_container(compose("config", overrides=overrides), resolve=True)
-    rec = load_scene(cfg["scene"], seed=0, window_events=4000)
-    _, window = next(rec.windows())
-    settings = settings_from(cfg)
-    sampled = segment_window(window, settings, optimizers.create("ssa_ga"), seed=0)
-    everyone = replace(
-        settings, clustering=replace(settings.clustering, fit_events_per_cluster=None)
-    )
-    full = segment_window(window, everyone, optimizers.create("ssa_ga"), seed=0)
-    assert len(sampled.prepared.points) == 1200 < len(full.prepared.points)
-    assert np.array_equal(sampled.labels >= 0, full.labels >= 0)  # the same events labelled
-    assert segmentation_metrics(sampled.labels, window.ground_truth.labels)["accuracy"] > 0.95
