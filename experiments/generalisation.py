@@ -166,14 +166,25 @@ def _stat(values: list[float | None], kind: str) -> str:
     return f"{number:.3f}"
 
 
+def motions_found(rows: list[dict[str, Any]]) -> str:
+    """The share of ``rows`` whose recording was labelled with as many objects as it has
+    motions (``n_clusters=auto``'s target; with a fixed count, the share with no object
+    left empty), or "-" when the rows do not say."""
+    known = [r for r in rows if "n_clusters_found" in r and "n_motions" in r]
+    if not known:
+        return "-"
+    return f"{np.mean([r['n_clusters_found'] == r['n_motions'] for r in known]):.2f}"
+
+
 def table(rows: list[dict[str, Any]], models: list[str]) -> str:
     """The Markdown table: per family and model, accuracy (mean, 10th percentile, worst) under
     one matching, the per-window-matched mean, mean IoU, velocity error (median), unassigned
-    (mean) and time (median, s)."""
+    (mean), the share with as many objects as motions (:func:`motions_found`) and time
+    (median, s)."""
     lines = [
         "| family | model | seeds | accuracy mean | 10th pct | worst | per-window mean "
-        "| mean IoU | velocity error (median) | unassigned | time (s, median) |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| mean IoU | velocity error (median) | unassigned | motions found | time (s, median) |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for family in dict.fromkeys(r["family"] for r in rows):
         for model in models:
@@ -188,6 +199,7 @@ def table(rows: list[dict[str, Any]], models: list[str]) -> str:
                 f"{_stat([r['mean_iou'] for r in sel], 'mean')} | "
                 f"{_stat([r['velocity_error'] for r in sel], 'median')} | "
                 f"{_stat([r['unassigned'] for r in sel], 'mean')} | "
+                f"{motions_found(sel)} | "
                 f"{_stat([r['time_s'] for r in sel], 'median')} |"
             )
     return "\n".join(lines)

@@ -47,3 +47,14 @@ def test_a_scene_read_back_from_disk_is_scored_per_model(tmp_path):
     assert again[0]["accuracy"] == rows[0]["accuracy"]
     table = generalisation.table(rows + again, models)
     assert "| equal_motion | spatial:" in table and "| 2 |" in table
+
+
+def test_motions_found_is_the_share_with_as_many_objects_as_motions():
+    rows = [
+        {"n_motions": 2, "n_clusters_found": 2},
+        {"n_motions": 3, "n_clusters_found": 2},
+        {"n_motions": 1, "n_clusters_found": 1},
+        {"n_motions": 2, "n_clusters_found": 3},
+    ]
+    assert generalisation.motions_found(rows) == "0.50"
+    assert generalisation.motions_found([{"accuracy": 1.0}]) == "-"
