@@ -4,6 +4,8 @@ one-line ValueError every bad argument raises before any work starts."""
 from __future__ import annotations
 
 import importlib
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +55,20 @@ def test_api_names_survive_importing_the_simulator_package() -> None:
     importlib.import_module("spatialseg.simulate.families")
     assert spatialseg.simulate is api.simulate
     assert {"segment", "simulate", "read", "write", "MotionSegmenter"} <= set(spatialseg.__all__)
+
+
+def test_importing_the_package_leaves_the_renderer_unloaded() -> None:
+    """``import spatialseg`` (every run, and a run on a recording needs no more) does not
+    import the simulator's renderer; its names load on first use."""
+    code = (
+        "import sys, spatialseg; "
+        "print('spatialseg.simulate.simulator' in sys.modules); "
+        "from spatialseg.simulate import simulate_scene; "
+        "print('spatialseg.simulate.simulator' in sys.modules, callable(simulate_scene))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["False", "True", "True"]
 
 
 def test_simulate_write_read_round_trip(recording: Recording, tmp_path: Path) -> None:
