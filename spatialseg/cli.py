@@ -145,9 +145,8 @@ def _check_output(output: Mapping[str, Any]) -> None:
 def run(cfg: DictConfig) -> dict[str, Any]:
     """Validate the config, segment the scene, write the outputs; return result.json's content.
 
-    The MLflow run opens from here on (:func:`spatialseg.tracking.live_run`, on its own
-    thread): it shows the job as RUNNING while it loads and segments, and ends as the job
-    ends."""
+    The MLflow run is open from here on (:func:`spatialseg.tracking.live_run`): it shows the
+    job as RUNNING while it loads and segments, and ends as the job ends."""
     from spatialseg.tracking import live_run
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)

@@ -19,7 +19,7 @@ from spatialseg.events import EventStream
 __all__ = ["denoise_mask"]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True)
 def _support_mask(
     x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int, radius: int, window: float
 ) -> np.ndarray:

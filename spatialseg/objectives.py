@@ -52,7 +52,7 @@ __all__ = [
 _REGISTRY: dict[str, type[Objective]] = {}
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def volume_moments(volume: np.ndarray) -> tuple[float, float]:
     """``(sum V, sum V^2)`` of a volume (any dtype or memory layout), accumulated in float64."""
     total = 0.0

@@ -47,7 +47,7 @@ def _sources(n: int, taps: int, mode: str) -> np.ndarray:
     return np.where(folded < n, folded, 2 * n - 1 - folded)
 
 
-@njit(cache=True, nogil=True, parallel=True, fastmath=True)
+@njit(cache=True, parallel=True, fastmath=True)
 def _convolve_middle(src: np.ndarray, dst: np.ndarray, kernel: np.ndarray, sources) -> None:
     """``dst[i, j, l] = sum_t kernel[t] src[i, sources[j, t], l]`` (0 where the source is -1)
     over a (a, n, b) array; parallel over ``i`` and blocks of ``l``."""
@@ -70,7 +70,7 @@ def _convolve_middle(src: np.ndarray, dst: np.ndarray, kernel: np.ndarray, sourc
             dst[i, j, lo:hi] = acc
 
 
-@njit(cache=True, nogil=True, parallel=True, fastmath=True)
+@njit(cache=True, parallel=True, fastmath=True)
 def _convolve_rows(src: np.ndarray, dst: np.ndarray, banded: np.ndarray) -> None:
     """``dst[i] = src[i] @ banded`` for each short row of the (a, n) ``src``; parallel over
     rows (numba's own loop: a BLAS call here would fight numba's threads for the cores)."""

@@ -30,7 +30,6 @@ import subprocess
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -78,26 +77,15 @@ def tracking_uri(settings: DictConfig, cwd: str) -> str:
     return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{Path(cwd) / 'mlflow.db'}"
 
 
-def _bound_requests(settings: DictConfig) -> None:
-    """Bound MLflow's HTTP retries and timeout (its environment variables; set on the main
-    thread, as the C library's environment is not safe to change beside other threads)."""
+def _client(settings: DictConfig, cwd: str) -> Any:
+    """An MlflowClient with bounded HTTP retries and quiet store migrations."""
     os.environ["MLFLOW_HTTP_REQUEST_MAX_RETRIES"] = str(settings.http_retries)
     os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] = str(settings.http_timeout)
-
-
-def _client_for(uri: str) -> Any:
-    """An MlflowClient of the store at ``uri``, its migrations quiet."""
     from mlflow.tracking import MlflowClient
 
     for name in ("alembic", "mlflow", "urllib3.connectionpool"):
         logging.getLogger(name).setLevel(logging.ERROR)
-    return MlflowClient(tracking_uri=uri)
-
-
-def _client(settings: DictConfig, cwd: str) -> Any:
-    """An MlflowClient with bounded HTTP retries and quiet store migrations."""
-    _bound_requests(settings)
-    return _client_for(tracking_uri(settings, cwd))
+    return MlflowClient(tracking_uri=tracking_uri(settings, cwd))
 
 
 def _experiment_id(client: Any, name: str) -> str:
@@ -202,31 +190,25 @@ def _finals(summary: Mapping[str, Any]) -> Iterator[tuple[str, float]]:
         yield _timing_key(key), seconds
 
 
-def _now_ms() -> int:
-    """The time now, in MLflow's milliseconds."""
-    return int(time.time() * 1000)
-
-
-def _log_metrics(
-    client: Any, run_id: str, points: Iterable[tuple[str, float, int]], stamp: int
-) -> None:
-    """Log ``(key, value, step)`` points stamped ``stamp`` (ms; when they were measured,
-    not when the tracking thread sends them), in batches of MLflow's limit."""
+def _log_metrics(client: Any, run_id: str, points: Iterable[tuple[str, float, int]]) -> None:
+    """Log ``(key, value, step)`` points, stamped now, in batches of MLflow's limit."""
     from mlflow.entities import Metric
 
-    metrics = [Metric(key, float(value), stamp, step) for key, value, step in points]
+    now = int(time.time() * 1000)
+    metrics = [Metric(key, float(value), now, step) for key, value, step in points]
     for i in range(0, len(metrics), MAX_BATCH):
         client.log_batch(run_id, metrics=metrics[i : i + MAX_BATCH])
 
 
-def _log_config(client: Any, run_id: str, request: RunRequest) -> None:
+def _log_config(client: Any, run_id: str, cfg: DictConfig) -> None:
     """The composed config as flattened params and as ``config.yaml``."""
     from mlflow.entities import Param
 
-    params = [Param(k, v) for k, v in request.params]
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    params = [Param(k, v) for k, v in flatten(plain)]
     for i in range(0, len(params), MAX_PARAMS):
         client.log_batch(run_id, params=params[i : i + MAX_PARAMS])
-    client.log_text(run_id, request.config_yaml, "config.yaml")
+    client.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
 
 
 def _log_outputs(client: Any, run_id: str, out: Path) -> None:
@@ -280,46 +262,16 @@ def _parent_id() -> str | None:
     return json.loads(path.read_text())["run_id"] if path.is_file() else None
 
 
-@dataclass(frozen=True)
-class RunRequest:
-    """Everything the job's run is opened with, read from Hydra and the config on the main
-    thread (the tracking thread reads no shared config)."""
-
-    uri: str
-    experiment: str
-    start_time: int  # ms: when the job asked for the run, so its duration is the job's
-    tags: dict[str, str]
-    name: str | None
-    params: list[tuple[str, str]]
-    config_yaml: str
-
-
-def run_request(cfg: DictConfig, settings: DictConfig) -> RunRequest:
-    """The :class:`RunRequest` of this job (a child of the sweep's parent run, if any)."""
+def _start_run(settings: DictConfig) -> tuple[Any, str]:
+    """Create this job's MLflow run (a child of the sweep's parent, if any)."""
     hc = HydraConfig.get()
-    tags = {"spatialseg.overrides": " ".join(hc.overrides.task)[:MAX_PARAM_CHARS]}
+    client = _client(settings, hc.runtime.cwd)
+    tags = {"spatialseg.overrides": " ".join(hc.overrides.task)[:MAX_PARAM_CHARS], **_code_tags()}
     parent = _parent_id()
     if parent is not None:
         tags["mlflow.parentRunId"] = parent
-    return RunRequest(
-        uri=tracking_uri(settings, hc.runtime.cwd),
-        experiment=str(settings.experiment),
-        start_time=_now_ms(),
-        tags=tags,
-        name=",".join(hc.overrides.task)[:250] or None,
-        params=list(flatten(OmegaConf.to_container(cfg, resolve=True))),
-        config_yaml=OmegaConf.to_yaml(cfg, resolve=True),
-    )
-
-
-def _start_run(request: RunRequest) -> tuple[Any, str]:
-    """Create the job's MLflow run, tagged with the code version too."""
-    client = _client_for(request.uri)
-    tags = {**request.tags, **_code_tags()}
-    experiment = _experiment_id(client, request.experiment)
-    run = client.create_run(
-        experiment, start_time=request.start_time, tags=tags, run_name=request.name
-    )
+    name = ",".join(hc.overrides.task)[:250] or None
+    run = client.create_run(_experiment_id(client, settings.experiment), tags=tags, run_name=name)
     return client, run.info.run_id
 
 
@@ -332,93 +284,55 @@ def browse_hint(uri: str, run_id: str) -> str:
 
 
 class LiveRun:
-    """The job's MLflow run while it runs; idle when tracking is off or the store failed.
-
-    Decision: every call to the store runs, in order, on one background thread, so the job
-    loads and segments while MLflow is imported and the run opened (about 2 s with a SQLite
-    store, docs/performance.md); the segmentation's kernels release the interpreter lock.
-    Only :meth:`finish` and :meth:`end` wait for the thread."""
+    """The job's MLflow run while it runs; idle when tracking is off or the store failed."""
 
     def __init__(self) -> None:
         self._client: Any = None
         self.run_id = ""
         self._windows = 0  # windows whose metrics are logged
-        self._thread: ThreadPoolExecutor | None = None
 
     def start(self, cfg: DictConfig) -> None:
-        """Open the run with its code version and config on the tracking thread, which
-        then says how to open it."""
+        """Create the run with its code version and config, and say how to open it."""
         settings = _settings(cfg)
         if settings is None:
             return
-        _bound_requests(settings)
-        request = run_request(cfg, settings)
-        self._thread = ThreadPoolExecutor(1, thread_name_prefix="spatialseg-mlflow")
-        self._thread.submit(self._open, request)
+        try:
+            self._client, self.run_id = _start_run(settings)
+        except Exception as exc:
+            _warn(exc)
+            return
+        if self._send(lambda client: _log_config(client, self.run_id, cfg)):
+            self._say("RUNNING")
 
     def log_windows(self, windows: Sequence[Mapping[str, Any]], *, prefixed: bool = True) -> None:
         """Log windows as they end (a stream's chunk, a recording's window), each under
         ``window<i>/`` (the curves of a recording's only window: unprefixed)."""
-        if self._thread is None:
-            return
         first, self._windows = self._windows, self._windows + len(windows)
         points = [
             point
             for i, window in enumerate(windows, start=first)
             for point in _window_metrics(window, i, prefixed=prefixed)
         ]
-        stamp = _now_ms()
-        self._thread.submit(
-            self._send, lambda client: _log_metrics(client, self.run_id, points, stamp)
-        )
+        self._send(lambda client: _log_metrics(client, self.run_id, points))
 
     def finish(self, summary: Mapping[str, Any], out_dir: Path) -> str | None:
         """Log the run's final metrics, unlogged windows and files; return how to open it."""
-        if self._thread is None:
+        if self._client is None:
             return None
+        log.info("logging to MLflow ...")  # the store's logging takes seconds at a run's end
         windows = summary["windows"]
         prefixed = self._windows > 0 or len(windows) > 1
         points = [(key, value, 0) for key, value in _finals(summary)]
         for i, window in enumerate(windows[self._windows :], start=self._windows):
             points += _window_metrics(window, i, prefixed=prefixed)
         self._windows = len(windows)
-        return self._thread.submit(self._finish, points, _now_ms(), out_dir).result()
-
-    def end(self, status: str, error: BaseException | None = None) -> None:
-        """End the run as ``status`` (FINISHED, FAILED, KILLED), ``error`` as its tag, and
-        wait for the tracking thread."""
-        if self._thread is None:
-            return
-        thread, self._thread = self._thread, None
-        try:
-            thread.submit(self._end, status, error).result()
-        finally:
-            thread.shutdown()
-
-    def _open(self, request: RunRequest) -> None:
-        """Create the run and log its config (on the tracking thread)."""
-        try:
-            self._client, self.run_id = _start_run(request)
-        except Exception as exc:
-            _warn(exc)
-            return
-        if self._send(lambda client: _log_config(client, self.run_id, request)):
-            self._say("RUNNING")
-
-    def _finish(
-        self, points: list[tuple[str, float, int]], stamp: int, out_dir: Path
-    ) -> str | None:
-        """Send the final ``points`` and the output files; how to open the run, or None."""
-        if self._client is None:
-            return None
-        log.info("logging to MLflow ...")  # the store's logging takes seconds at a run's end
-        sent = self._send(lambda client: _log_metrics(client, self.run_id, points, stamp))
+        sent = self._send(lambda client: _log_metrics(client, self.run_id, points))
         if sent and self._send(lambda client: _log_outputs(client, self.run_id, out_dir)):
             return browse_hint(str(self._client.tracking_uri), self.run_id)
         return None
 
-    def _end(self, status: str, error: BaseException | None) -> None:
-        """:meth:`end`'s store calls (on the tracking thread)."""
+    def end(self, status: str, error: BaseException | None = None) -> None:
+        """End the run as ``status`` (FINISHED, FAILED, KILLED), ``error`` as its tag."""
         if self._client is None:
             return
         try:
@@ -598,8 +512,7 @@ class SweepCallback(Callback):
         """Log the sweep's summary metrics (:func:`_sweep_metrics`) and tags to the parent."""
         children = _children(self._client, self._run_id)
         metrics = _sweep_metrics(tally, children)
-        points = [(k, v, 0) for k, v in metrics.items()]
-        _log_metrics(self._client, self._run_id, points, _now_ms())
+        _log_metrics(self._client, self._run_id, [(k, v, 0) for k, v in metrics.items()])
         tags = {"jobs_failed": str(tally.failed), "jobs_total": str(tally.total)}
         best = _best_job(children)
         if best is not None:

@@ -52,14 +52,14 @@ DTYPES = (np.float32, np.float64)
 _FASTMATH = {"contract"}
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, inline="always")
 def _layout(padded: np.ndarray):
     """Flat view, grid shape and strides (x, y) of a volume padded by one zero voxel per side."""
     px, py, pz = padded.shape
     return padded.reshape(padded.size), (px - 2, py - 2, pz - 2), py * pz, pz
 
 
-@njit(cache=True, nogil=True, inline="always", fastmath=_FASTMATH)
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _axis(c: float, n: int):
     """One axis of a warped event: padded lower-corner index, fraction, masks, derivative scale.
 
@@ -78,7 +78,7 @@ def _axis(c: float, n: int):
     )
 
 
-@njit(cache=True, nogil=True, inline="always", fastmath=_FASTMATH)
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _warped(points, dt, k, theta, proj):
     """Event ``k`` warped by ``theta``, in the grid's coordinates ``q``; False behind the camera.
 
@@ -97,7 +97,7 @@ def _warped(points, dt, k, theta, proj):
     return True, proj[0] * x * inverse + proj[2], proj[1] * y * inverse + proj[3], inverse
 
 
-@njit(cache=True, nogil=True, inline="always", fastmath=_FASTMATH)
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _to_theta(points, dt, k, theta, proj, inv_size, gx, gy, gz):
     """A derivative along the voxel coordinates of event ``k``'s warped position, as one along
     the point ``p' = p - dt theta`` (times ``-dt``: the caller's): ``(dq/dp')^T g / size``."""
@@ -109,7 +109,7 @@ def _to_theta(points, dt, k, theta, proj, inv_size, gx, gy, gz):
     return gx * proj[0] * inverse, gy * proj[1] * inverse, tz
 
 
-@njit(cache=True, nogil=True, inline="always", fastmath=_FASTMATH)
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _locate(points, dt, k, theta, origin, inv_size, proj, shape, sx, sy):
     """Warp event ``k``: whether it touches the grid, the flat index of its cell, and its axes."""
     ok, qx, qy, qz = _warped(points, dt, k, theta, proj)
@@ -124,7 +124,7 @@ def _locate(points, dt, k, theta, origin, inv_size, proj, shape, sx, sy):
     return inside, ax[0] * sx + ay[0] * sy + az[0], ax[1:], ay[1:], az[1:]
 
 
-@njit(cache=True, nogil=True, inline="always", fastmath=_FASTMATH)
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _splat(flat, b, sx, sy, w, ax, ay, az) -> float:
     """Add the 8 masked trilinear votes of weight ``w`` at cell ``b``; return the mass added."""
     cast = flat.dtype.type  # add in the volume's dtype (no float32 -> float64 round trip)
@@ -146,7 +146,7 @@ def _splat(flat, b, sx, sy, w, ax, ay, az) -> float:
     return (wx0 + wx1) * (wy0 + wy1) * (wz0 + wz1)
 
 
-@njit(cache=True, nogil=True, inline="always", fastmath=_FASTMATH)
+@njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _interpolate(flat, b, sx, sy, fx, fy, fz):
     """Trilinear value in cell ``b`` at fractions ``(fx, fy, fz)`` and its d/dc along x, y, z."""
     g000, g001 = np.float64(flat[b]), np.float64(flat[b + 1])
@@ -162,7 +162,7 @@ def _interpolate(flat, b, sx, sy, fx, fy, fz):
     return h0 + fx * (h1 - h0), h1 - h0, hy0 + fx * (hy1 - hy0), ez0 + fx * (ez1 - ez0)
 
 
-@njit(cache=True, nogil=True, fastmath=_FASTMATH)
+@njit(cache=True, fastmath=_FASTMATH)
 def _scatter(points, dt, weights, theta, origin, inv_size, proj, padded, cells, fracs) -> float:
     """Vote every event into ``padded`` (zero on entry); return the in-grid mass ``sum V``.
 
@@ -188,7 +188,7 @@ def _scatter(points, dt, weights, theta, origin, inv_size, proj, padded, cells, 
     return mass
 
 
-@njit(cache=True, nogil=True, fastmath=_FASTMATH)
+@njit(cache=True, fastmath=_FASTMATH)
 def _clear(points, dt, weights, theta, origin, inv_size, proj, padded, cells) -> None:
     """Zero ``padded`` after :func:`_scatter`: by the events' cells when cheaper than a memset."""
     flat, shape, sx, sy = _layout(padded)
@@ -210,7 +210,7 @@ def _clear(points, dt, weights, theta, origin, inv_size, proj, padded, cells) ->
             flat[corner + sx] = 0
 
 
-@njit(cache=True, nogil=True, fastmath=_FASTMATH)
+@njit(cache=True, fastmath=_FASTMATH)
 def _weighted_sample_sum(
     points, dt, weights, theta, origin, inv_size, proj, padded, cells, fracs
 ) -> float:
@@ -235,7 +235,7 @@ def _weighted_sample_sum(
     return total
 
 
-@njit(cache=True, nogil=True, fastmath=_FASTMATH)
+@njit(cache=True, fastmath=_FASTMATH)
 def _gather_grad(points, dt, weights, theta, origin, inv_size, proj, padded, cells, fracs):
     """One gather pass over ``G`` (padded, zero halo) after :func:`_scatter`: ``(S, A, B)``.
 
@@ -288,7 +288,7 @@ def _gather_grad(points, dt, weights, theta, origin, inv_size, proj, padded, cel
     return s, np.array([ax_, ay_, az_]), np.array([bx_, by_, bz_])
 
 
-@njit(cache=True, nogil=True, fastmath=_FASTMATH)
+@njit(cache=True, fastmath=_FASTMATH)
 def _sample(points, dt, theta, origin, inv_size, proj, padded, cells, fracs, out) -> None:
     """``out[k]``: the padded volume interpolated trilinearly at event ``k``'s warped position."""
     flat, shape, sx, sy = _layout(padded)
@@ -303,7 +303,7 @@ def _sample(points, dt, theta, origin, inv_size, proj, padded, cells, fracs, out
             out[k] = _interpolate(flat, b, sx, sy, ax[0], ay[0], az[0])[0] if inside else 0.0
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, parallel=True)
 def _batch_moments(points, dt, weights, thetas, origin, inv_size, proj, padded, cells, fracs, out):
     """``out[i] = (sum V, sum V^2)`` at each ``thetas[i]``; one workspace per parallel chunk."""
     n = thetas.shape[0]

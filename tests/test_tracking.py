@@ -61,9 +61,10 @@ def test_single_run_is_one_mlflow_run(tmp_path):
     assert res.returncode == 0, res.stderr
     (run,) = _runs(db)
     assert run.info.status == "FINISHED"
-    # opened (on the tracking thread, beside the segmentation) as the job began, closed
-    # after the outputs: the run's real duration
-    assert "MLflow: RUNNING run " in res.stdout
+    # opened before the data was made, closed after the outputs: the run's real duration
+    lines = res.stdout.splitlines()
+    opened = next(i for i, line in enumerate(lines) if "MLflow: RUNNING run " in line)
+    assert opened < next(i for i, line in enumerate(lines) if "window 0/3: " in line)
     seconds = (run.info.end_time - run.info.start_time) / 1000
     assert seconds >= json.loads((out / "result.json").read_text())["timings"]["total"]
     assert run.data.tags["spatialseg.version"] == package.__version__
@@ -397,78 +398,3 @@ def test_a_failing_sweep_summary_only_warns(tmp_path, monkeypatch, caplog):
         "tracking: sweep summary files not logged (RuntimeError: no display)"
     ]
     assert client.list_artifacts(parent) == []  # written into a folder, logged only if all made
-
-
-class _RecordingClient:
-    """A stand-in MLflow client that records the calls made to it, in order."""
-
-    tracking_uri = "sqlite:///fake.db"
-
-    def __init__(self) -> None:
-        self.calls: list[str] = []
-        self.stamps: list[int] = []
-
-    def log_batch(self, run_id, metrics=(), params=()):
-        self.calls.append(f"batch:{len(metrics)}m{len(params)}p")
-        self.stamps += [m.timestamp for m in metrics]
-
-    def log_text(self, run_id, text, name):
-        self.calls.append(f"text:{name}")
-
-    def log_artifact(self, run_id, path):
-        self.calls.append(f"artifact:{Path(path).name}")
-
-    def set_tag(self, run_id, key, value):
-        self.calls.append(f"tag:{key}")
-
-    def set_terminated(self, run_id, status):
-        self.calls.append(f"end:{status}")
-
-
-def test_the_run_opens_on_the_tracking_thread_while_the_job_goes_on(tmp_path, monkeypatch):
-    """start() returns while the store is still opening the run (MLflow's import, the
-    store's migrations); the windows logged meanwhile reach the store after the run exists,
-    in order, stamped when they were logged; finish() and end() wait for the store."""
-    import threading
-
-    from spatialseg import tracking
-
-    client, opened, may_open = _RecordingClient(), threading.Event(), threading.Event()
-
-    def slow_start(request):
-        may_open.wait(timeout=30)
-        client.calls.append(f"create:{request.name}")
-        opened.set()
-        return client, "run-1"
-
-    request = tracking.RunRequest(
-        "sqlite:///fake.db", "spatialseg", 123, {}, "job", [("a", "1")], "a: 1\n"
-    )
-    monkeypatch.setattr(tracking, "_start_run", slow_start)
-    monkeypatch.setattr(tracking, "run_request", lambda cfg, settings: request)
-    monkeypatch.setattr(tracking, "_window_metrics", lambda w, i, prefixed: [(f"w{i}", 1.0, 0)])
-    monkeypatch.setattr(tracking, "_finals", lambda summary: [("accuracy", 1.0)])
-    times = iter([1000, 2000])  # when the window ended, when the run finished (ms)
-    monkeypatch.setattr(tracking, "_now_ms", lambda: next(times))
-    cfg = OmegaConf.create({"tracking": {"enabled": True, "http_retries": 0, "http_timeout": 1}})
-    run = tracking.LiveRun()
-    run.start(cfg)
-    run.log_windows([{}], prefixed=True)
-    assert not opened.is_set() and client.calls == []  # the job went on without the store
-    may_open.set()
-    (tmp_path / "result.json").write_text("{}")
-    summary = {"windows": [{}]}
-    hint = run.finish(summary, tmp_path)
-    assert hint == browse_hint(client.tracking_uri, "run-1")
-    run.end("FINISHED")
-    assert client.calls == [
-        "create:job",
-        "batch:0m1p",
-        "text:config.yaml",
-        "batch:1m0p",  # the window, logged before the run existed
-        "batch:1m0p",  # the finals
-        "artifact:result.json",
-        "end:FINISHED",
-    ]
-    assert client.stamps == [1000, 2000]
-    assert run._thread is None  # the tracking thread is shut down

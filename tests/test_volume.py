@@ -348,27 +348,3 @@ def test_p_step_stride_needs_enough_smoothing():
     ev.p_step(THETA, (2.0, 2.0, 0.0), 3)  # depth is not coarsened, so any sigma there
     with pytest.raises(ValueError, match="grid stride must be an integer >= 1"):
         ev.p_step(THETA, 1.0, 0)
-
-
-def test_every_kernel_releases_the_interpreter_lock():
-    """The MLflow run opens on a thread beside the segmentation (spatialseg.tracking), which
-    only helps while the kernels let go of the interpreter lock."""
-    import importlib
-
-    from numba.core.dispatcher import Dispatcher
-
-    from spatialseg.compilation import KERNEL_MODULES
-
-    kernels = [
-        (name, key)
-        for name in KERNEL_MODULES
-        for key, value in vars(importlib.import_module(name)).items()
-        if isinstance(value, Dispatcher)
-    ]
-    assert len(kernels) >= 10
-    holding = [
-        f"{name}.{key}"
-        for name, key in kernels
-        if not getattr(importlib.import_module(name), key).targetoptions.get("nogil")
-    ]
-    assert holding == []
