@@ -168,8 +168,9 @@ def _stat(values: list[float | None], kind: str) -> str:
 
 def motions_found(rows: list[dict[str, Any]]) -> str:
     """The share of ``rows`` whose recording was labelled with as many objects as it has
-    motions (``n_clusters=auto``'s target; with a fixed count, the share with no object
-    left empty), or "-" when the rows do not say."""
+    motions (``n_clusters=auto``'s target; with the true count given, it drops when an id
+    holds no object event or the linking across windows makes extra ids), or "-" when the
+    rows do not say."""
     known = [r for r in rows if "n_clusters_found" in r and "n_motions" in r]
     if not known:
         return "-"
