@@ -39,16 +39,19 @@ def image_tiles(xy: np.ndarray, size: float, min_events: int) -> tuple[np.ndarra
 
 
 class Tiles:
-    """The events of each tile (``members``, ``counts``), and their objective built on demand
-    by ``evaluator_for(indices)`` (one at a time: each holds a volume the size of the grid)."""
+    """The events of each tile (``members``, ``counts``), their objective built on demand by
+    ``evaluator_for(indices)`` (one at a time: each holds a volume the size of the grid),
+    and ``contrasts_of(velocities)``: every tile's contrast under each velocity (T x H)."""
 
     def __init__(
         self,
         evaluator_for: Callable[[np.ndarray], ClusterEvaluator],
         event_tile: np.ndarray,
         n_tiles: int,
+        contrasts_of: Callable[[np.ndarray], np.ndarray],
     ) -> None:
         self._evaluator_for = evaluator_for
+        self.contrasts = contrasts_of
         order = np.argsort(event_tile, kind="stable")
         ids = event_tile[order]
         starts = np.searchsorted(ids, np.arange(n_tiles))
@@ -80,10 +83,6 @@ class Tiles:
                 for ev, s in zip(self._evaluators(), seeds, strict=True)
             ]
         )
-
-    def contrasts(self, velocities: np.ndarray) -> np.ndarray:
-        """Every tile's contrast under every velocity (T x H)."""
-        return np.array([ev.batch_value(velocities) for ev in self._evaluators()])
 
 
 def greedy_cover(

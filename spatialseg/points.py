@@ -267,6 +267,11 @@ class ModelEvaluator:
         """Contrast of many candidate velocities (n x dim) in one parallel call."""
         return self.inner.batch_value(spatial_velocities(thetas))
 
+    def group_values(self, thetas: np.ndarray) -> np.ndarray:
+        """Contrast of each event group alone (the volume's ``groups``) under each candidate
+        velocity (n x dim): groups x n."""
+        return self.inner.group_values(spatial_velocities(thetas))
+
     def volume(self, theta: np.ndarray) -> np.ndarray:
         """The volume of warped events for ``theta``."""
         return self.inner.volume(self._full(theta))
@@ -285,25 +290,33 @@ def window_objective(
     settings: Settings,
     index: Any = slice(None),
     grid: VoxelGrid | None = None,
+    groups: np.ndarray | None = None,
 ) -> ModelEvaluator:
     """The configured objective (one cluster's contrast, weights set by the caller) over the
-    window's events ``index`` (default all) on ``grid`` (default the window's)
+    window's events ``index`` (default all) on ``grid`` (default the window's); ``groups``:
+    a group number per selected event, for :meth:`ModelEvaluator.group_values`
     (:func:`volume_objective`)."""
     volume = volume_objective(
         prepared.points[index],
         prepared.t[index] - t_ref,
         prepared.grid if grid is None else grid,
         settings,
+        groups,
     )
     return ModelEvaluator(volume, prepared.dim)
 
 
 def volume_objective(
-    points: np.ndarray, dt: np.ndarray, grid: VoxelGrid, settings: Settings
+    points: np.ndarray,
+    dt: np.ndarray,
+    grid: VoxelGrid,
+    settings: Settings,
+    groups: np.ndarray | None = None,
 ) -> VolumeObjective:
     """The volume of ``points`` warped over ``dt`` on ``grid``, judged by the configured
     objective (``objective.name``, ``objective.blur_sigma``) and stored in ``volume.dtype``
-    (float32 halves the memory per event, float64 is the more accurate)."""
+    (float32 halves the memory per event, float64 is the more accurate); ``groups``: see
+    :class:`~spatialseg.volume.VolumeObjective`."""
     objective = settings.objective
     return VolumeObjective(
         points,
@@ -311,6 +324,7 @@ def volume_objective(
         grid,
         make_objective(name=objective.name, blur_sigma=objective.blur_sigma),
         dtype=settings.volume.dtype,
+        groups=groups,
     )
 
 

@@ -129,7 +129,9 @@ def _tiles_init(given: StartInput) -> motion_init.InitResult | None:
     def evaluator_for(index: np.ndarray) -> ModelEvaluator:
         return window_objective(prepared, t_ref, settings, index)
 
-    tiles = hypotheses.Tiles(evaluator_for, event_tile, len(counts))
+    in_tiles = np.flatnonzero(event_tile >= 0)
+    grouped = window_objective(prepared, t_ref, settings, in_tiles, groups=event_tile[in_tiles])
+    tiles = hypotheses.Tiles(evaluator_for, event_tile, len(counts), grouped.group_values)
     velocities, tile_label = hypotheses.tile_motions(
         tiles,
         k,

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from itertools import pairwise
 
 import numba
 import numpy as np
@@ -316,6 +317,23 @@ def _batch_moments(points, dt, weights, thetas, origin, inv_size, proj, padded, 
             _clear(*args, cells[c])
 
 
+@njit(cache=True, parallel=True)
+def _group_moments(
+    points, dt, weights, starts, thetas, origin, inv_size, proj, padded, cells, fracs, out
+):
+    """``out[g, i] = (sum V, sum V^2)`` of group ``g``'s events (``starts[g]:starts[g + 1]``)
+    alone at ``thetas[i]``; one workspace per parallel chunk of groups."""
+    chunks = padded.shape[0]
+    for c in prange(chunks):
+        for g in range(c, starts.size - 1, chunks):
+            a, b = starts[g], starts[g + 1]
+            for i in range(thetas.shape[0]):
+                args = (points[a:b], dt[a:b], weights[a:b], thetas[i], origin, inv_size, proj)
+                out[g, i, 0] = _scatter(*args, padded[c], cells[c], fracs[c])
+                out[g, i, 1] = _weighted_sample_sum(*args, padded[c], cells[c], fracs[c])
+                _clear(*args, padded[c], cells[c])
+
+
 def _finite_array(
     name: str, value: object, shape: tuple[int | None, ...], dtype, hint: str = ""
 ) -> np.ndarray:
@@ -363,7 +381,9 @@ class VolumeObjective:
     ``points`` (N x 3) and ``dt`` (N) are the events' 3-D points and ``t_k - t_ref``;
     ``weights`` (N, default 1) their memberships ``p_kj``; ``objective`` an
     :class:`~spatialseg.objectives.Objective` or a registered name; ``dtype`` the storage
-    type of points and volumes (float32 or float64). Inputs are validated here, once.
+    type of points and volumes (float32 or float64); ``groups`` (N integers, optional) a
+    partition of the events whose parts :meth:`group_values` judges each alone. Inputs are
+    validated here, once.
     """
 
     def __init__(
@@ -374,6 +394,7 @@ class VolumeObjective:
         objective: Objective | str,
         weights: np.ndarray | None = None,
         dtype: npt.DTypeLike = np.float64,
+        groups: np.ndarray | None = None,
     ) -> None:
         if not isinstance(grid, VoxelGrid):
             raise ValueError(f"grid must be a VoxelGrid, got {type(grid).__name__}")
@@ -393,7 +414,10 @@ class VolumeObjective:
         self.grid = grid
         self.objective = objective
         self.dtype = np.dtype(dtype)
-        self._order = self._locality_order(pts, grid)
+        group = self._groups(groups, pts.shape[0])
+        self._order = self._locality_order(pts, grid, None if groups is None else group)
+        changes = np.flatnonzero(np.diff(group[self._order])) + 1
+        self._group_starts = np.concatenate([[0], changes, [pts.shape[0]]]).astype(np.int64)
         self._points = np.ascontiguousarray(pts[self._order], dtype=self.dtype)
         self._dt = np.ascontiguousarray(times[self._order], dtype=self.dtype)
         self._weights = np.ones(len(self._dt), dtype=self.dtype)
@@ -409,14 +433,30 @@ class VolumeObjective:
             self.set_weights(weights)
 
     @staticmethod
-    def _locality_order(points: np.ndarray, grid: VoxelGrid) -> np.ndarray:
-        """Event order by nearest unwarped voxel (C order), so the kernels walk V sequentially."""
+    def _groups(groups: np.ndarray | None, n: int) -> np.ndarray:
+        """The events' group numbers (N,): ``groups`` checked, or one group of all."""
+        if groups is None:
+            return np.zeros(n, dtype=np.int64)
+        group = np.asarray(groups)
+        if group.shape != (n,) or not np.issubdtype(group.dtype, np.integer):
+            raise ValueError(f"groups must be {n} integers, got {group.dtype} {group.shape}")
+        return group.astype(np.int64, copy=False)
+
+    @staticmethod
+    def _locality_order(
+        points: np.ndarray, grid: VoxelGrid, groups: np.ndarray | None
+    ) -> np.ndarray:
+        """Event order by group (if given), then by nearest unwarped voxel (C order), then as
+        given: the kernels walk V sequentially, and each group's events are contiguous."""
         if not len(points):
             return np.zeros(0, dtype=np.intp)
         shape = np.array(grid.shape)
         index = np.nan_to_num(grid.continuous_index(points))  # NaN: behind the camera
         nearest = np.clip(np.rint(index), 0, shape - 1).astype(np.intp)
-        return np.argsort(np.ravel_multi_index(nearest.T, grid.shape), kind="stable")
+        voxel = np.ravel_multi_index(nearest.T, grid.shape)
+        if groups is None:
+            return np.argsort(voxel, kind="stable")
+        return np.lexsort((voxel, groups))
 
     def _zero_padded(self, *count: int) -> np.ndarray:
         """A zero volume with a one-voxel halo per side (``count`` of them stacked, if given)."""
@@ -530,6 +570,36 @@ class VolumeObjective:
             _batch_moments(*events, thetas, *grid_args, moments)
         n_voxels = self.grid.n_voxels
         return np.array([self.objective.from_moments(m, q, n_voxels)[0] for m, q in moments])
+
+    def group_values(self, thetas: np.ndarray) -> np.ndarray:
+        """The objective of each group's events alone (``groups``, in increasing group
+        number) at each row of ``thetas`` (n x 3): G x n, equal to :meth:`batch_value` of a
+        volume built on that group's events. One volume serves every group, so judging many
+        small groups costs their events, not a grid each."""
+        thetas = _finite_array("thetas", thetas, (None, 3), np.float64)
+        starts = self._group_starts
+        if not self._fused:
+            return np.array([self._part(a, b).batch_value(thetas) for a, b in pairwise(starts)])
+        moments = np.zeros((len(starts) - 1, len(thetas), 2))
+        chunks = min(numba.get_num_threads(), len(starts) - 1)
+        if chunks and len(thetas):
+            if self._batch is None or len(self._batch[0]) < chunks:
+                self._batch = self._workspace(chunks)
+            padded, cells, fracs = (a[:chunks] for a in self._batch)
+            events = (self._points, self._dt, self._weights, starts, thetas)
+            grid_args = (self._origin, self._inv_size, self._proj, padded, cells, fracs)
+            _group_moments(*events, *grid_args, moments)
+        n_voxels = self.grid.n_voxels
+        value = self.objective.from_moments
+        return np.array([[value(m, q, n_voxels)[0] for m, q in row] for row in moments])
+
+    def _part(self, start: int, stop: int) -> VolumeObjective:
+        """A volume of the events ``start:stop`` of the locality order (one group)."""
+        sl = slice(start, stop)
+        weights = self._weights[sl]
+        return VolumeObjective(
+            self._points[sl], self._dt[sl], self.grid, self.objective, weights, self.dtype
+        )
 
     def volume(self, theta: np.ndarray) -> np.ndarray:
         """A copy of the raw VWE ``V(theta)`` (before any blur), shape ``grid.shape``."""

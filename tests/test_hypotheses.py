@@ -12,6 +12,7 @@ from spatialseg.config import conf_dir
 from spatialseg.grid import grid_around
 from spatialseg.hypotheses import Tiles, greedy_cover, image_tiles, tile_motions
 from spatialseg.metrics import segmentation_metrics
+from spatialseg.objectives import make_objective
 from spatialseg.points import ModelEvaluator
 from spatialseg.scenes import load_scene
 from spatialseg.settings import settings_from
@@ -67,7 +68,11 @@ def test_tiles_group_events_and_recover_two_motions():
     def evaluator_for(index: np.ndarray) -> ModelEvaluator:
         return ModelEvaluator(VolumeObjective(points[index], dt[index], grid, "variance"), 3)
 
-    tiles = Tiles(evaluator_for, event_tile, len(counts))
+    in_tiles = np.flatnonzero(event_tile >= 0)
+    grouped = VolumeObjective(
+        points[in_tiles], dt[in_tiles], grid, "variance", groups=event_tile[in_tiles]
+    )
+    tiles = Tiles(evaluator_for, event_tile, len(counts), grouped.group_values)
     assert (
         sorted(np.concatenate(tiles.members).tolist()) == np.flatnonzero(event_tile >= 0).tolist()
     )
@@ -89,6 +94,34 @@ def test_tiles_group_events_and_recover_two_motions():
     event_label = np.where(event_tile >= 0, tile_label[np.maximum(event_tile, 0)], -1)
     kept = event_label >= 0
     assert np.mean(order[event_label[kept]] == labels[kept]) > 0.95
+
+
+def test_grouped_contrasts_equal_one_volume_per_tile():
+    """One volume judging every tile alone gives each tile's own volume's values, bit for
+    bit, with the variance (fused kernel) and with a blurred objective (a volume per tile)."""
+    rng = np.random.default_rng(1)
+    points, dt, _, _ = _two_motion_cloud(rng)
+    grid = grid_around(points, np.array([0.005, 0.005, 0.02]), 0.1, 10**7)
+    event_tile, counts = image_tiles(points[:, :2], 0.05, 30)
+    in_tiles = np.flatnonzero(event_tile >= 0)
+    velocities = rng.normal(0.0, 0.3, (7, 3))
+    for objective in (make_objective("variance"), make_objective("variance", blur_sigma=1.0)):
+        one = VolumeObjective(
+            points[in_tiles], dt[in_tiles], grid, objective, groups=event_tile[in_tiles]
+        )
+        grouped = one.group_values(velocities)
+        assert grouped.shape == (len(counts), 7)
+        for tile in range(len(counts)):
+            index = np.flatnonzero(event_tile == tile)
+            alone = VolumeObjective(points[index], dt[index], grid, objective)
+            assert np.array_equal(grouped[tile], alone.batch_value(velocities))
+
+
+def test_volume_refuses_groups_that_are_not_one_integer_per_event():
+    points = np.zeros((3, 3)) + 0.5
+    grid = grid_around(points, np.array([0.1, 0.1, 0.1]), 0.1, 10**5)
+    with pytest.raises(ValueError, match="groups must be 3 integers"):
+        VolumeObjective(points, np.zeros(3), grid, "variance", groups=np.array([0.0, 1.0, 1.0]))
 
 
 def _config(*overrides: str) -> dict:
