@@ -11,7 +11,7 @@ from spatialseg.events import EventStream
 from spatialseg.points import prepare
 from spatialseg.recording import Camera, DepthMap, Recording
 from spatialseg.settings import settings_from
-from spatialseg.window import segment_window
+from spatialseg.window import nearest_memberships, segment_window
 from tests.test_pipeline import _config
 
 WIDTH, HEIGHT = 64, 48
@@ -146,3 +146,13 @@ def test_noise_is_left_out_of_the_fit_and_still_labelled():
     assert off.valid.all() and not off.rest[2].any()
     with pytest.raises(ValueError, match=r"denoise\.enabled must be true or false"):
         settings_from({**cfg, "denoise": {**cfg["denoise"], "enabled": 1}})
+
+
+def test_an_event_no_volume_reaches_takes_the_mean_memberships_at_the_nearest_point():
+    """Two fitted events share the nearest point: a far query gets their mean, whichever of
+    the two a tree would return; a query by a lone event gets that event's memberships."""
+    points = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [5.0, 5.0, 3.0]])
+    memberships = np.array([[1.0, 0.0], [0.0, 1.0], [0.2, 0.8]])
+    queries = np.array([[-40.0, 1.0, 2.0], [6.0, 5.0, 3.0]])
+    got = nearest_memberships(points, memberships, queries)
+    np.testing.assert_allclose(got, [[0.5, 0.5], [0.2, 0.8]])
