@@ -1,13 +1,15 @@
 """MLflow tracking: each run (or multirun job) becomes one MLflow run, jobs under a parent.
 
-A job's run opens when the job starts (:func:`live_run`), so a long job shows as RUNNING
-with its composed config (flattened params and ``config.yaml``) and its code version (tags
-``spatialseg.version`` and, in a git checkout, ``mlflow.source.git.commit``). Each window's
-metrics, its per-iteration curves as stepped metrics, are logged as the window ends; the
-whole run's metrics and its output files at its end. The run ends FINISHED, FAILED on an
-error (its message as the tag ``error``) or KILLED on SIGTERM or Ctrl-C. The outputs are on
-disk before they are sent, and a tracking failure only logs one warning line: tracking
-never loses a result. In a multirun, :class:`SweepCallback` creates the store, the
+A job's run opens when the job starts (:func:`live_run`), stamped with that time and
+created by a separate process (:mod:`spatialseg.tracking_worker`) while the job works, so a
+long job shows as RUNNING with its composed config (flattened params and ``config.yaml``)
+and its code version (tags ``spatialseg.version`` and, in a git checkout,
+``mlflow.source.git.commit``). Each window's metrics, its per-iteration curves as stepped
+metrics, are logged as the window ends; the whole run's metrics and its output files at its
+end. The run ends FINISHED, FAILED on an error (its message as the tag ``error``) or KILLED
+on SIGTERM, Ctrl-C or a job that vanished (SIGKILL). The outputs are on disk before they
+are sent, and a tracking failure only logs one warning line: tracking never loses a
+result. In a multirun, :class:`SweepCallback` creates the store, the
 experiment and a parent run before the jobs start and writes the parent's id to
 ``mlflow_parent.json`` in the sweep directory, where each job finds it; after the jobs it
 logs the sweep's summary to the parent.
@@ -24,12 +26,16 @@ import contextlib
 import json
 import logging
 import os
+import pickle
+import queue
 import shlex
 import statistics
 import subprocess
+import sys
 import tempfile
+import threading
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -62,6 +68,7 @@ MAX_BATCH = 1000  # metrics per log_batch call (MLflow's limit)
 MAX_PARAMS = 100  # params per log_batch call (MLflow's limit)
 MAX_PARAM_CHARS = 6000  # MLflow's limit on a param value
 GIT_TIMEOUT = 2.0  # seconds per git call for the commit tag
+WORKER_EXIT_TIMEOUT = 30.0  # seconds the job waits for the tracking process to exit
 
 
 def _settings(cfg: DictConfig) -> DictConfig | None:
@@ -70,17 +77,18 @@ def _settings(cfg: DictConfig) -> DictConfig | None:
     return settings if settings is not None and settings.get("enabled", False) else None
 
 
-def tracking_uri(settings: DictConfig, cwd: str) -> str:
+def tracking_uri(settings: Mapping[str, Any], cwd: str) -> str:
     """``tracking.uri``, else ``$MLFLOW_TRACKING_URI``, else ``sqlite:///<cwd>/mlflow.db``."""
-    if settings.uri:
-        return str(settings.uri)
+    if settings["uri"]:
+        return str(settings["uri"])
     return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{Path(cwd) / 'mlflow.db'}"
 
 
-def _client(settings: DictConfig, cwd: str) -> Any:
-    """An MlflowClient with bounded HTTP retries and quiet store migrations."""
-    os.environ["MLFLOW_HTTP_REQUEST_MAX_RETRIES"] = str(settings.http_retries)
-    os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] = str(settings.http_timeout)
+def store_client(settings: Mapping[str, Any], cwd: str) -> Any:
+    """An MlflowClient (``settings``: the ``tracking`` section) with bounded HTTP retries and
+    quiet store migrations."""
+    os.environ["MLFLOW_HTTP_REQUEST_MAX_RETRIES"] = str(settings["http_retries"])
+    os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] = str(settings["http_timeout"])
     from mlflow.tracking import MlflowClient
 
     for name in ("alembic", "mlflow", "urllib3.connectionpool"):
@@ -88,7 +96,7 @@ def _client(settings: DictConfig, cwd: str) -> Any:
     return MlflowClient(tracking_uri=tracking_uri(settings, cwd))
 
 
-def _experiment_id(client: Any, name: str) -> str:
+def experiment_id(client: Any, name: str) -> str:
     """The experiment's id, creating it (artifacts beside a SQLite file) if missing."""
     found = client.get_experiment_by_name(name)
     if found is not None:
@@ -100,10 +108,17 @@ def _experiment_id(client: Any, name: str) -> str:
     return str(client.create_experiment(name, artifact_location=location))
 
 
-def _warn(exc: BaseException) -> None:
-    """The one warning line of an unavailable tracking store."""
-    first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:300]
-    log.warning("tracking: MLflow unavailable, outputs kept on disk only (%s)", first)
+def _warn(problem: BaseException | str) -> None:
+    """The one warning line of an unavailable tracking store (``problem``: the error, or
+    its first line)."""
+    if isinstance(problem, BaseException):
+        problem = first_line(problem)
+    log.warning("tracking: MLflow unavailable, outputs kept on disk only (%s)", problem)
+
+
+def first_line(exc: BaseException) -> str:
+    """An error's first line (at most 300 characters), or its type's name."""
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0][:300]
 
 
 def flatten(tree: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
@@ -190,7 +205,7 @@ def _finals(summary: Mapping[str, Any]) -> Iterator[tuple[str, float]]:
         yield _timing_key(key), seconds
 
 
-def _log_metrics(client: Any, run_id: str, points: Iterable[tuple[str, float, int]]) -> None:
+def log_metrics(client: Any, run_id: str, points: Iterable[tuple[str, float, int]]) -> None:
     """Log ``(key, value, step)`` points, stamped now, in batches of MLflow's limit."""
     from mlflow.entities import Metric
 
@@ -200,18 +215,19 @@ def _log_metrics(client: Any, run_id: str, points: Iterable[tuple[str, float, in
         client.log_batch(run_id, metrics=metrics[i : i + MAX_BATCH])
 
 
-def _log_config(client: Any, run_id: str, cfg: DictConfig) -> None:
-    """The composed config as flattened params and as ``config.yaml``."""
+def log_params(
+    client: Any, run_id: str, params: Sequence[tuple[str, str]], config_yaml: str
+) -> None:
+    """The composed config as flattened params (:func:`flatten`) and as ``config.yaml``."""
     from mlflow.entities import Param
 
-    plain = OmegaConf.to_container(cfg, resolve=True)
-    params = [Param(k, v) for k, v in flatten(plain)]
-    for i in range(0, len(params), MAX_PARAMS):
-        client.log_batch(run_id, params=params[i : i + MAX_PARAMS])
-    client.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
+    entries = [Param(k, v) for k, v in params]
+    for i in range(0, len(entries), MAX_PARAMS):
+        client.log_batch(run_id, params=entries[i : i + MAX_PARAMS])
+    client.log_text(run_id, config_yaml, "config.yaml")
 
 
-def _log_outputs(client: Any, run_id: str, out: Path) -> None:
+def log_outputs(client: Any, run_id: str, out: Path) -> None:
     """The run directory's output files (labels, result.json, figures) as artifacts."""
     for path in sorted(out.iterdir()):
         if path.is_file() and path.suffix in {".npy", ".json", ".png"}:
@@ -242,7 +258,7 @@ def git_commit(folder: Path | None = None) -> str | None:
     return _git(folder, "rev-parse", "HEAD") or None
 
 
-def _code_tags() -> dict[str, str]:
+def code_tags() -> dict[str, str]:
     """The code version a run ran: the package's version and, in a checkout, its commit."""
     from spatialseg import __version__
 
@@ -262,19 +278,6 @@ def _parent_id() -> str | None:
     return json.loads(path.read_text())["run_id"] if path.is_file() else None
 
 
-def _start_run(settings: DictConfig) -> tuple[Any, str]:
-    """Create this job's MLflow run (a child of the sweep's parent, if any)."""
-    hc = HydraConfig.get()
-    client = _client(settings, hc.runtime.cwd)
-    tags = {"spatialseg.overrides": " ".join(hc.overrides.task)[:MAX_PARAM_CHARS], **_code_tags()}
-    parent = _parent_id()
-    if parent is not None:
-        tags["mlflow.parentRunId"] = parent
-    name = ",".join(hc.overrides.task)[:250] or None
-    run = client.create_run(_experiment_id(client, settings.experiment), tags=tags, run_name=name)
-    return client, run.info.run_id
-
-
 def browse_hint(uri: str, run_id: str) -> str:
     """How to look at run ``run_id`` of the store at ``uri``: a server's address to open,
     else the ``mlflow ui`` command that serves the store."""
@@ -284,40 +287,66 @@ def browse_hint(uri: str, run_id: str) -> str:
 
 
 class LiveRun:
-    """The job's MLflow run while it runs; idle when tracking is off or the store failed."""
+    """The job's MLflow run while it runs, kept by a worker process
+    (:mod:`spatialseg.tracking_worker`) so that importing MLflow and opening the store
+    overlap the job instead of delaying it; idle when tracking is off or the store failed.
+
+    Requests go out through a thread (the job never waits on a pipe); a second thread reads
+    the answers, says when the run is RUNNING and warns when the store fails. Only
+    :meth:`finish` and :meth:`end` wait, for the worker to have logged everything before.
+    """
 
     def __init__(self) -> None:
-        self._client: Any = None
+        self._worker: subprocess.Popen | None = None
+        self._outbox: queue.Queue = queue.Queue()
+        self._answers: queue.Queue = queue.Queue()
+        self._warned = False
         self.run_id = ""
+        self._uri = ""
         self._windows = 0  # windows whose metrics are logged
 
     def start(self, cfg: DictConfig) -> None:
-        """Create the run with its code version and config, and say how to open it."""
+        """Start the worker and ask it to create the run, stamped now, with the job's code
+        version and config; the run is RUNNING (and says how to open it) once created."""
         settings = _settings(cfg)
         if settings is None:
             return
+        hc = HydraConfig.get()
+        job = {
+            "settings": OmegaConf.to_container(settings, resolve=True),
+            "cwd": hc.runtime.cwd,
+            "overrides": list(hc.overrides.task),
+            "parent": _parent_id(),
+            "start_time": int(time.time() * 1000),
+            "params": list(flatten(OmegaConf.to_container(cfg, resolve=True))),
+            "config_yaml": OmegaConf.to_yaml(cfg, resolve=True),
+        }
+        command = [sys.executable, "-m", "spatialseg.tracking_worker"]
         try:
-            self._client, self.run_id = _start_run(settings)
-        except Exception as exc:
-            _warn(exc)
+            self._worker = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        except OSError as exc:
+            self._warn(exc)
             return
-        if self._send(lambda client: _log_config(client, self.run_id, cfg)):
-            self._say("RUNNING")
+        threading.Thread(target=self._write, daemon=True).start()
+        threading.Thread(target=self._read, daemon=True).start()
+        self._outbox.put(("start", job))
 
     def log_windows(self, windows: Sequence[Mapping[str, Any]], *, prefixed: bool = True) -> None:
         """Log windows as they end (a stream's chunk, a recording's window), each under
         ``window<i>/`` (the curves of a recording's only window: unprefixed)."""
         first, self._windows = self._windows, self._windows + len(windows)
+        if self._worker is None:
+            return
         points = [
             point
             for i, window in enumerate(windows, start=first)
             for point in _window_metrics(window, i, prefixed=prefixed)
         ]
-        self._send(lambda client: _log_metrics(client, self.run_id, points))
+        self._outbox.put(("metrics", points))
 
     def finish(self, summary: Mapping[str, Any], out_dir: Path) -> str | None:
         """Log the run's final metrics, unlogged windows and files; return how to open it."""
-        if self._client is None:
+        if self._worker is None or self._warned:
             return None
         log.info("logging to MLflow ...")  # the store's logging takes seconds at a run's end
         windows = summary["windows"]
@@ -326,45 +355,72 @@ class LiveRun:
         for i, window in enumerate(windows[self._windows :], start=self._windows):
             points += _window_metrics(window, i, prefixed=prefixed)
         self._windows = len(windows)
-        sent = self._send(lambda client: _log_metrics(client, self.run_id, points))
-        if sent and self._send(lambda client: _log_outputs(client, self.run_id, out_dir)):
-            return browse_hint(str(self._client.tracking_uri), self.run_id)
-        return None
+        self._outbox.put(("metrics", points))
+        self._outbox.put(("outputs", str(out_dir)))
+        answer = self._answer()
+        return answer[1] if answer[0] == "hint" else None
 
     def end(self, status: str, error: BaseException | None = None) -> None:
-        """End the run as ``status`` (FINISHED, FAILED, KILLED), ``error`` as its tag."""
-        if self._client is None:
+        """End the run as ``status`` (FINISHED, FAILED, KILLED), ``error`` as its tag, and
+        wait for the worker to exit."""
+        if self._worker is None:
             return
+        text = None if error is None else f"{type(error).__name__}: {error}"
+        self._outbox.put(("end", status, text))
+        self._outbox.put(None)
+        answer = self._answer()
+        worker, self._worker = self._worker, None
         try:
-            if error is not None:
-                text = f"{type(error).__name__}: {error}"[:MAX_PARAM_CHARS]
-                self._client.set_tag(self.run_id, "error", text)
-            self._client.set_terminated(self.run_id, status)
-        except Exception as exc:
-            _warn(exc)
-        else:
-            if status != "FINISHED":  # a finished run's report names it
-                self._say(status)
-        finally:
-            self._client = None
+            worker.wait(timeout=WORKER_EXIT_TIMEOUT)
+        except subprocess.TimeoutExpired:
+            worker.kill()
+        if answer[0] == "ended" and answer[1] and status != "FINISHED":
+            self._say(status)  # a finished run's report names it
+
+    def _answer(self) -> tuple:
+        """The worker's next answer (``("gone",)`` if it exited without one)."""
+        answer = self._answers.get()
+        if answer[0] == "gone":
+            self._warn("the tracking process exited")
+        return answer
+
+    def _write(self) -> None:
+        """Send the queued requests to the worker, in order; close its input after the last."""
+        assert self._worker is not None and self._worker.stdin is not None
+        pipe = self._worker.stdin
+        with contextlib.suppress(OSError):  # the worker is gone: the reader says so
+            while (request := self._outbox.get()) is not None:
+                pickle.dump(request, pipe)
+                pipe.flush()
+            pipe.close()
+
+    def _read(self) -> None:
+        """Take the worker's answers: say RUNNING, warn, pass the rest to :meth:`_answer`."""
+        assert self._worker is not None and self._worker.stdout is not None
+        pipe = self._worker.stdout
+        while True:
+            try:
+                answer = pickle.load(pipe)
+            except (EOFError, OSError, pickle.UnpicklingError):
+                self._answers.put(("gone",))
+                return
+            if answer[0] == "started":
+                self.run_id, self._uri = answer[1], answer[2]
+                self._say("RUNNING")
+            elif answer[0] == "warning":
+                self._warn(answer[1])
+            else:
+                self._answers.put(answer)
+
+    def _warn(self, problem: BaseException | str) -> None:
+        """Warn once that tracking failed (:func:`_warn`)."""
+        if not self._warned:
+            self._warned = True
+            _warn(problem)
 
     def _say(self, status: str) -> None:
         """Log the run's ``status`` and how to open it."""
-        log.info("MLflow: %s %s", status, browse_hint(str(self._client.tracking_uri), self.run_id))
-
-    def _send(self, action: Callable[[Any], object]) -> bool:
-        """Run a logging ``action``; on an error warn once, end the run FAILED, go idle."""
-        if self._client is None:
-            return False
-        try:
-            action(self._client)
-        except Exception as exc:
-            _warn(exc)
-            with contextlib.suppress(Exception):
-                self._client.set_terminated(self.run_id, "FAILED")
-            self._client = None
-            return False
-        return True
+        log.info("MLflow: %s %s", status, browse_hint(self._uri, self.run_id))
 
 
 @contextlib.contextmanager
@@ -480,11 +536,11 @@ class SweepCallback(Callback):
         if settings is None:
             return
         try:
-            client = _client(settings, config.hydra.runtime.cwd)
-            experiment = _experiment_id(client, settings.experiment)
+            client = store_client(settings, config.hydra.runtime.cwd)
+            experiment = experiment_id(client, settings.experiment)
             sweep_dir = Path(str(config.hydra.sweep.dir))
             name = f"sweep {sweep_dir.name}"
-            run = client.create_run(experiment, tags=_code_tags(), run_name=name)
+            run = client.create_run(experiment, tags=code_tags(), run_name=name)
         except Exception as exc:
             _warn(exc)
             return
@@ -512,7 +568,7 @@ class SweepCallback(Callback):
         """Log the sweep's summary metrics (:func:`_sweep_metrics`) and tags to the parent."""
         children = _children(self._client, self._run_id)
         metrics = _sweep_metrics(tally, children)
-        _log_metrics(self._client, self._run_id, [(k, v, 0) for k, v in metrics.items()])
+        log_metrics(self._client, self._run_id, [(k, v, 0) for k, v in metrics.items()])
         tags = {"jobs_failed": str(tally.failed), "jobs_total": str(tally.total)}
         best = _best_job(children)
         if best is not None:

@@ -61,10 +61,9 @@ def test_single_run_is_one_mlflow_run(tmp_path):
     assert res.returncode == 0, res.stderr
     (run,) = _runs(db)
     assert run.info.status == "FINISHED"
-    # opened before the data was made, closed after the outputs: the run's real duration
-    lines = res.stdout.splitlines()
-    opened = next(i for i, line in enumerate(lines) if "MLflow: RUNNING run " in line)
-    assert opened < next(i for i, line in enumerate(lines) if "window 0/3: " in line)
+    # stamped when the job started, though a separate process creates it, and closed after
+    # the outputs: the run's real duration
+    assert f"MLflow: RUNNING run {run.info.run_id}; " in res.stdout
     seconds = (run.info.end_time - run.info.start_time) / 1000
     assert seconds >= json.loads((out / "result.json").read_text())["timings"]["total"]
     assert run.data.tags["spatialseg.version"] == package.__version__
@@ -273,6 +272,31 @@ def test_signalled_job_is_running_then_killed(tmp_path, signum):
     (run,) = _runs(db)
     assert run.info.status == "KILLED"
     assert f"MLflow: KILLED run {run_id}; to browse: mlflow ui" in stdout
+
+
+def test_a_job_killed_outright_leaves_its_run_killed(tmp_path):
+    """SIGKILL gives the job no chance to end its run: the tracking process sees the job's
+    pipe close and ends the run KILLED, not RUNNING forever."""
+    import time
+
+    from mlflow.tracking import MlflowClient
+
+    db = tmp_path / "mlflow.db"
+    args = ("+scene=interior", "output.plots=false", f"tracking.uri=sqlite:///{db}")
+    command = [sys.executable, "-m", "spatialseg", *args, f"hydra.run.dir={tmp_path / 'run'}"]
+    with subprocess.Popen(command, cwd=tmp_path, stdout=subprocess.PIPE, text=True) as proc:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if "MLflow: RUNNING run " in line:
+                break
+        run_id = line.split("RUNNING run ")[1].split(";")[0]
+        proc.kill()
+    client = MlflowClient(f"sqlite:///{db}")
+    for _ in range(300):  # the tracking process ends it within a moment
+        if client.get_run(run_id).info.status != "RUNNING":
+            break
+        time.sleep(0.1)
+    assert client.get_run(run_id).info.status == "KILLED"
 
 
 def test_git_commit_is_the_checkouts_head_or_none(tmp_path):
