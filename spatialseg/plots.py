@@ -38,6 +38,13 @@ __all__ = [
 #: Object colours (tab10, by object id); unassigned events are drawn grey.
 _UNASSIGNED = np.array([0.6, 0.6, 0.6])
 
+#: A result figure's margins (inches: left for tick and axis labels, right, bottom for
+#: tick and axis labels, top for a title) and the gap between panels (a share of a panel's
+#: width); room for a legend right of the axes is added on the right where there is one.
+_MARGINS = (0.75, 0.25, 0.6, 0.45)
+_PANEL_GAP = 0.3
+_LEGEND_WIDTH = 1.3
+
 #: Red for positive events, blue for negative ones; a pixel with both mixes towards purple.
 _POSITIVE_INK = np.array([0.0, 1.0, 1.0])
 _NEGATIVE_INK = np.array([1.0, 1.0, 0.0])
@@ -143,6 +150,25 @@ def _projected_volumes(window: WindowResult) -> list[np.ndarray]:
     return images
 
 
+def _result_figure(width: float, height: float, *, legend: bool = False) -> Figure:
+    """A result figure of ``width`` x ``height`` inches with fixed margins (:data:`_MARGINS`;
+    ``legend``: with room for a legend right of the axes).
+
+    Decision: a layout engine (constrained, tight) draws each figure twice to measure its
+    text; a run draws four figures per window, and fixed margins suit their fixed texts."""
+    left, right, bottom, top = _MARGINS
+    right += _LEGEND_WIDTH if legend else 0.0
+    fig = Figure(figsize=(width, height))
+    fig.subplots_adjust(
+        left=left / width,
+        right=1 - right / width,
+        bottom=bottom / height,
+        top=1 - top / height,
+        wspace=_PANEL_GAP,
+    )
+    return fig
+
+
 def _save(fig: Figure, path: Path) -> Path:
     """Save a figure as PNG (atomically: a killed run leaves no half-written image)."""
     with atomic_file(path) as tmp:
@@ -183,7 +209,7 @@ def _save_clusters(
     path: Path, recording: Recording, labels: np.ndarray, k: int, title: str
 ) -> Path:
     """The events coloured by object id (grey: unassigned) with a legend, as a PNG."""
-    fig = Figure(figsize=(7.2, 4.8), layout="constrained")
+    fig = _result_figure(7.2 + _LEGEND_WIDTH, 4.8, legend=True)
     ax = fig.subplots()
     ax.imshow(cluster_image(recording.events, labels, k), interpolation="nearest")
     ax.set_title(f"{title}: events by object")
@@ -200,7 +226,7 @@ def _window_figures(out_dir: Path, window: WindowResult, suffix: str) -> list[Pa
     """The warped-volume panels and the contrast and theta curves of one window."""
     c, units = window.clustering, window.prepared.units
     images = _projected_volumes(window)
-    fig = Figure(figsize=(5 * len(images), 4.4), layout="constrained")
+    fig = _result_figure(5 * len(images), 4.4)
     for j, (ax, image) in enumerate(
         zip(np.atleast_1d(fig.subplots(1, len(images))), images, strict=True)
     ):
@@ -210,7 +236,7 @@ def _window_figures(out_dir: Path, window: WindowResult, suffix: str) -> list[Pa
     paths = [_save(fig, out_dir / f"warped_volumes{suffix}.png")]
 
     iterations = [r.iteration for r in c.history]
-    fig = Figure(figsize=(6, 4), layout="constrained")
+    fig = _result_figure(6, 4)
     ax = fig.subplots()
     per_cluster = np.array([r.per_cluster for r in c.history])
     ids = [_object_id(window, j) for j in range(per_cluster.shape[1])]
@@ -222,7 +248,7 @@ def _window_figures(out_dir: Path, window: WindowResult, suffix: str) -> list[Pa
     paths.append(_save(fig, out_dir / f"variance{suffix}.png"))
 
     thetas = np.array([r.thetas for r in c.history])
-    fig = Figure(figsize=(4 * thetas.shape[2], 3.6), layout="constrained")
+    fig = _result_figure(4 * thetas.shape[2], 3.6)
     for a, ax in enumerate(np.atleast_1d(fig.subplots(1, thetas.shape[2]))):
         for j, obj in enumerate(ids):
             ax.plot(iterations, thetas[:, j, a], "o-", color=colours[j], label=f"object {obj}")
