@@ -51,7 +51,17 @@ def test_an_interrupted_job_exits_130_in_one_line(capsys):
     assert capsys.readouterr().err == "error: interrupted by SIGINT\n"
 
 
+@pytest.fixture
+def python_default_sigint():
+    """Python's own SIGINT handler for the test, as a terminal gives the command line: a
+    shell starts background jobs with SIGINT ignored, which the job rightly leaves alone."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 @pytest.mark.parametrize(("signum", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+@pytest.mark.usefixtures("python_default_sigint")
 def test_a_stop_swallowed_by_a_gc_callback_still_stops_the_job(signum, code, capsys):
     """A signal handled while a weakref callback runs (SQLAlchemy's, inside MLflow, seen in a
     test) raises where Python only prints "Exception ignored"; the job still ends stopped,
