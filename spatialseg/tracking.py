@@ -205,12 +205,19 @@ def _finals(summary: Mapping[str, Any]) -> Iterator[tuple[str, float]]:
         yield _timing_key(key), seconds
 
 
-def log_metrics(client: Any, run_id: str, points: Iterable[tuple[str, float, int]]) -> None:
-    """Log ``(key, value, step)`` points, stamped now, in batches of MLflow's limit."""
+def now_ms() -> int:
+    """The time now, in MLflow's milliseconds."""
+    return int(time.time() * 1000)
+
+
+def log_metrics(
+    client: Any, run_id: str, points: Iterable[tuple[str, float, int]], stamp: int
+) -> None:
+    """Log ``(key, value, step)`` points stamped ``stamp`` (ms; when the job measured them,
+    not when the tracking process sends them), in batches of MLflow's limit."""
     from mlflow.entities import Metric
 
-    now = int(time.time() * 1000)
-    metrics = [Metric(key, float(value), now, step) for key, value, step in points]
+    metrics = [Metric(key, float(value), stamp, step) for key, value, step in points]
     for i in range(0, len(metrics), MAX_BATCH):
         client.log_batch(run_id, metrics=metrics[i : i + MAX_BATCH])
 
@@ -317,7 +324,7 @@ class LiveRun:
             "cwd": hc.runtime.cwd,
             "overrides": list(hc.overrides.task),
             "parent": _parent_id(),
-            "start_time": int(time.time() * 1000),
+            "start_time": now_ms(),
             "params": list(flatten(OmegaConf.to_container(cfg, resolve=True))),
             "config_yaml": OmegaConf.to_yaml(cfg, resolve=True),
         }
@@ -342,7 +349,7 @@ class LiveRun:
             for i, window in enumerate(windows, start=first)
             for point in _window_metrics(window, i, prefixed=prefixed)
         ]
-        self._outbox.put(("metrics", points))
+        self._outbox.put(("metrics", points, now_ms()))
 
     def finish(self, summary: Mapping[str, Any], out_dir: Path) -> str | None:
         """Log the run's final metrics, unlogged windows and files; return how to open it."""
@@ -355,7 +362,7 @@ class LiveRun:
         for i, window in enumerate(windows[self._windows :], start=self._windows):
             points += _window_metrics(window, i, prefixed=prefixed)
         self._windows = len(windows)
-        self._outbox.put(("metrics", points))
+        self._outbox.put(("metrics", points, now_ms()))
         self._outbox.put(("outputs", str(out_dir)))
         answer = self._answer()
         return answer[1] if answer[0] == "hint" else None
@@ -568,7 +575,8 @@ class SweepCallback(Callback):
         """Log the sweep's summary metrics (:func:`_sweep_metrics`) and tags to the parent."""
         children = _children(self._client, self._run_id)
         metrics = _sweep_metrics(tally, children)
-        log_metrics(self._client, self._run_id, [(k, v, 0) for k, v in metrics.items()])
+        points = [(k, v, 0) for k, v in metrics.items()]
+        log_metrics(self._client, self._run_id, points, now_ms())
         tags = {"jobs_failed": str(tally.failed), "jobs_total": str(tally.total)}
         best = _best_job(children)
         if best is not None:

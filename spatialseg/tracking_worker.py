@@ -7,7 +7,8 @@ which holds the interpreter lock too often for a thread to help (docs/performanc
 answers on stdout:
 
 - ``("start", job)`` -> ``("started", run_id, uri)`` or ``("warning", text)``
-- ``("metrics", points)`` -> nothing, or ``("warning", text)`` on a failure
+- ``("metrics", points, stamp)`` -> nothing, or ``("warning", text)`` on a failure; the
+  points carry ``stamp`` (ms), when the job measured them
 - ``("outputs", folder)`` -> ``("hint", text or None)``
 - ``("end", status, error or None)`` -> ``("ended", announce)``, then it exits
 

@@ -422,3 +422,24 @@ def test_a_failing_sweep_summary_only_warns(tmp_path, monkeypatch, caplog):
         "tracking: sweep summary files not logged (RuntimeError: no display)"
     ]
     assert client.list_artifacts(parent) == []  # written into a folder, logged only if all made
+
+
+def test_the_tracking_process_stamps_metrics_with_the_jobs_time():
+    """A window's metrics carry the moment the job measured them, not the moment the
+    tracking process, perhaps still opening the store, got round to sending them."""
+    import io
+
+    from spatialseg.tracking_worker import Worker
+
+    class Store:
+        def __init__(self):
+            self.logged = []
+
+        def log_batch(self, run_id, metrics=()):
+            self.logged += [(run_id, m.key, m.value, m.timestamp, m.step) for m in metrics]
+
+    worker = Worker(io.BytesIO())
+    worker._client, worker._run_id = Store(), "run"
+    measured = 1_000_000  # ms: long before now
+    assert worker.handle(("metrics", [("window0/variance", 2.5, 0)], measured))
+    assert worker._client.logged == [("run", "window0/variance", 2.5, measured, 0)]
