@@ -414,9 +414,9 @@ class VolumeObjective:
         self.grid = grid
         self.objective = objective
         self.dtype = np.dtype(dtype)
-        group = self._groups(groups, pts.shape[0])
-        self._order = self._locality_order(pts, grid, None if groups is None else group)
-        changes = np.flatnonzero(np.diff(group[self._order])) + 1
+        group = None if groups is None else self._groups(groups, pts.shape[0])
+        self._order = self._locality_order(pts, grid, group)
+        changes = [] if group is None else np.flatnonzero(np.diff(group[self._order])) + 1
         self._group_starts = np.concatenate([[0], changes, [pts.shape[0]]]).astype(np.int64)
         self._points = np.ascontiguousarray(pts[self._order], dtype=self.dtype)
         self._dt = np.ascontiguousarray(times[self._order], dtype=self.dtype)
@@ -433,10 +433,8 @@ class VolumeObjective:
             self.set_weights(weights)
 
     @staticmethod
-    def _groups(groups: np.ndarray | None, n: int) -> np.ndarray:
-        """The events' group numbers (N,): ``groups`` checked, or one group of all."""
-        if groups is None:
-            return np.zeros(n, dtype=np.int64)
+    def _groups(groups: np.ndarray, n: int) -> np.ndarray:
+        """The events' group numbers (N,), checked."""
         group = np.asarray(groups)
         if group.shape != (n,) or not np.issubdtype(group.dtype, np.integer):
             raise ValueError(f"groups must be {n} integers, got {group.dtype} {group.shape}")
@@ -562,14 +560,9 @@ class VolumeObjective:
         moments = np.zeros((len(thetas), 2))
         chunks = min(numba.get_num_threads(), len(thetas))
         if chunks:
-            if self._batch is None or len(self._batch[0]) < chunks:
-                self._batch = self._workspace(chunks)
-            padded, cells, fracs = (a[:chunks] for a in self._batch)
             events = (self._points, self._dt, self._weights)
-            grid_args = (self._origin, self._inv_size, self._proj, padded, cells, fracs)
-            _batch_moments(*events, thetas, *grid_args, moments)
-        n_voxels = self.grid.n_voxels
-        return np.array([self.objective.from_moments(m, q, n_voxels)[0] for m, q in moments])
+            _batch_moments(*events, thetas, *self._batch_args(chunks), moments)
+        return self._values(moments)
 
     def group_values(self, thetas: np.ndarray) -> np.ndarray:
         """The objective of each group's events alone (``groups``, in increasing group
@@ -583,15 +576,22 @@ class VolumeObjective:
         moments = np.zeros((len(starts) - 1, len(thetas), 2))
         chunks = min(numba.get_num_threads(), len(starts) - 1)
         if chunks and len(thetas):
-            if self._batch is None or len(self._batch[0]) < chunks:
-                self._batch = self._workspace(chunks)
-            padded, cells, fracs = (a[:chunks] for a in self._batch)
             events = (self._points, self._dt, self._weights, starts, thetas)
-            grid_args = (self._origin, self._inv_size, self._proj, padded, cells, fracs)
-            _group_moments(*events, *grid_args, moments)
-        n_voxels = self.grid.n_voxels
-        value = self.objective.from_moments
-        return np.array([[value(m, q, n_voxels)[0] for m, q in row] for row in moments])
+            _group_moments(*events, *self._batch_args(chunks), moments)
+        return self._values(moments)
+
+    def _batch_args(self, chunks: int) -> tuple:
+        """The batch kernels' grid arguments with ``chunks`` workspaces (made once, kept)."""
+        if self._batch is None or len(self._batch[0]) < chunks:
+            self._batch = self._workspace(chunks)
+        padded, cells, fracs = (a[:chunks] for a in self._batch)
+        return self._origin, self._inv_size, self._proj, padded, cells, fracs
+
+    def _values(self, moments: np.ndarray) -> np.ndarray:
+        """The objective of each ``(sum V, sum V^2)`` pair in ``moments`` (... x 2)."""
+        value, n_voxels = self.objective.from_moments, self.grid.n_voxels
+        flat = [value(m, q, n_voxels)[0] for m, q in moments.reshape(-1, 2)]
+        return np.array(flat).reshape(moments.shape[:-1])
 
     def _part(self, start: int, stop: int) -> VolumeObjective:
         """A volume of the events ``start:stop`` of the locality order (one group)."""
