@@ -21,15 +21,23 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from sklearn.cluster import KMeans
-from threadpoolctl import threadpool_limits
 
 from spatialseg.grid import VoxelGrid
 
-__all__ = ["PLANES", "InitResult", "initial_motions", "lift_constraints", "time_surfaces"]
+__all__ = [
+    "PLANES",
+    "InitResult",
+    "initial_motions",
+    "kmeans",
+    "lift_constraints",
+    "time_surfaces",
+]
 
 #: The axis pairs (u, v) of the time surfaces S1 = (X, Y), S2 = (Y, Z), S3 = (Z, X).
 PLANES = ((0, 1), (1, 2), (2, 0))
+#: k-means stops when its centres move less than this share of the points' mean variance
+#: per axis (squared distance, summed over the centres), as scikit-learn's ``tol``.
+KMEANS_TOLERANCE = 1e-4
 
 
 @dataclass(frozen=True, eq=False)
@@ -250,6 +258,90 @@ def _constraint_cost(a: np.ndarray, b: np.ndarray, centres: np.ndarray) -> np.nd
     return ((np.einsum("eij,kj->eki", a, centres) - b[:, None, :]) ** 2).sum(axis=2)
 
 
+def kmeans(
+    points: np.ndarray, n_clusters: int, *, n_init: int, seed: int, max_iter: int = 300
+) -> tuple[np.ndarray, np.ndarray]:
+    """Lloyd's k-means of ``points`` (N, D) from ``n_init`` k-means++ seedings drawn with
+    ``seed``; the partition of least inertia wins: (labels (N,), centres (K, D)).
+
+    Decision: the flow start partitions a few thousand 3-vectors, which takes milliseconds
+    here; scikit-learn's KMeans did the same but its import cost about a second per run.
+    """
+    rng = np.random.default_rng(seed)
+    best: tuple[np.ndarray, np.ndarray, float] | None = None
+    for _ in range(n_init):
+        labels, centres, inertia = _lloyd(
+            points, _kmeans_plus_plus(points, n_clusters, rng), max_iter
+        )
+        if best is None or inertia < best[2]:
+            best = (labels, centres, inertia)
+    assert best is not None
+    return best[0], best[1]
+
+
+def _squared_distances(points: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """(N, K) squared Euclidean distances between ``points`` (N, D) and ``centres`` (K, D),
+    expanded as |x|^2 - 2 x.c + |c|^2 (one matrix product; clipped at zero)."""
+    cross = points @ centres.T
+    squared = (points**2).sum(axis=1)[:, None] - 2.0 * cross + (centres**2).sum(axis=1)[None, :]
+    return np.maximum(squared, 0.0)
+
+
+def _kmeans_plus_plus(points: np.ndarray, n_clusters: int, rng: np.random.Generator) -> np.ndarray:
+    """Greedy k-means++ seeding (Arthur and Vassilvitskii, 2007): each next centre is the best
+    of ``2 + ln K`` candidates drawn in proportion to the squared distance to the nearest
+    centre so far, best meaning the lowest total of those distances once it is added."""
+    trials = 2 + int(np.log(n_clusters))
+    centres = [points[rng.integers(len(points))]]
+    nearest = _squared_distances(points, centres[0][None])[:, 0]
+    for _ in range(1, n_clusters):
+        total = float(nearest.sum())
+        if total > 0:
+            drawn = np.searchsorted(np.cumsum(nearest), rng.random(trials) * total, side="right")
+            candidates = np.minimum(drawn, len(points) - 1)
+        else:  # every point sits on a centre
+            candidates = rng.integers(len(points), size=trials)
+        reach = np.minimum(nearest[None, :], _squared_distances(points, points[candidates]).T)
+        pick = int(reach.sum(axis=1).argmin())
+        centres.append(points[candidates[pick]])
+        nearest = reach[pick]
+    return np.array(centres, dtype=np.float64)
+
+
+def _lloyd(
+    points: np.ndarray, centres: np.ndarray, max_iter: int
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Lloyd iterations from ``centres`` until the partition stops changing, the centres move
+    less than :data:`KMEANS_TOLERANCE` in total (squared, relative to the points' mean
+    variance per axis) or ``max_iter``: (labels, centres, inertia). A cluster that empties
+    takes the point farthest from its centre among clusters of two or more."""
+    centres = centres.copy()
+    labels = np.full(len(points), -1)
+    tolerance = KMEANS_TOLERANCE * float(points.var(axis=0).mean())
+    for _ in range(max_iter):
+        distances = _squared_distances(points, centres)
+        new_labels = distances.argmin(axis=1)
+        if np.array_equal(new_labels, labels):
+            break
+        labels, previous = new_labels, centres
+        for j in np.flatnonzero(np.bincount(labels, minlength=len(centres)) == 0):
+            shared = np.bincount(labels, minlength=len(centres))[labels] > 1
+            spread = np.where(shared, distances[np.arange(len(points)), labels], -1.0)
+            labels[int(spread.argmax())] = j
+        centres = _cluster_means(points, labels, len(centres))
+        if ((centres - previous) ** 2).sum() <= tolerance:
+            break
+    distances = _squared_distances(points, centres)
+    return distances.argmin(axis=1), centres, float(distances.min(axis=1).sum())
+
+
+def _cluster_means(points: np.ndarray, labels: np.ndarray, n_clusters: int) -> np.ndarray:
+    """(K, D) mean of each cluster's ``points``; every cluster must have a member."""
+    counts = np.bincount(labels, minlength=n_clusters)
+    sums = [np.bincount(labels, weights=axis, minlength=n_clusters) for axis in points.T]
+    return np.stack(sums, axis=1) / counts[:, None]
+
+
 def _refine_clusters(
     a: np.ndarray, b: np.ndarray, labels: np.ndarray, centres: np.ndarray, max_condition: float
 ) -> np.ndarray:
@@ -368,8 +460,8 @@ def initial_motions(
     ``points`` (M, 3) and ``t`` (M,) in the model's units (metres and seconds; ``dim = 2``:
     image-plane points (x, y, 0) in pixels, velocities (vx, vy, 0) in px/s), any time
     origin (absolute ``t`` or ``t - t_ref``: only differences matter). At most
-    ``max_events`` events, drawn with ``seed``, get a normal flow; k-means (scikit-learn,
-    ``n_init`` starts, ``random_state=seed``) partitions the valid flows and
+    ``max_events`` events, drawn with ``seed``, get a normal flow; :func:`kmeans` (``n_init``
+    seedings drawn with ``seed``) partitions the valid flows and
     :func:`_refine_clusters` turns the partition into velocities. With fewer valid
     (distinct) flows than ``n_clusters`` the velocities are spread around the mean valid
     flow (zero if none) at one voxel per window duration, the smallest velocity difference
@@ -416,9 +508,8 @@ def initial_motions(
             step /= float(np.median(np.linalg.norm(lift[:, 0], axis=1)))
         spread = _spread(centre, step, int(n_clusters), 2 if lift is None else 3)
         return InitResult(spread, flows, len(good), True, np.full(m, -1))
-    with threadpool_limits(limits=1, user_api="openmp"):  # few points: threads cost more
-        kmeans = KMeans(int(n_clusters), n_init=int(n_init), random_state=seed).fit(good)
-    thetas = _refine_clusters(a[ok], b[ok], kmeans.labels_, kmeans.cluster_centers_, max_condition)
+    partition, centres = kmeans(good, int(n_clusters), n_init=int(n_init), seed=seed)
+    thetas = _refine_clusters(a[ok], b[ok], partition, centres, max_condition)
     labels = np.full(m, -1)
     labels[sample[ok]] = _constraint_cost(a[ok], b[ok], thetas).argmin(axis=1)
     return InitResult(thetas, flows, len(good), False, labels)

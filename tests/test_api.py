@@ -71,6 +71,20 @@ def test_importing_the_package_leaves_the_renderer_unloaded() -> None:
     assert done.stdout.split() == ["False", "True", "True"]
 
 
+def test_a_run_from_the_command_line_leaves_scikit_learn_unloaded() -> None:
+    """Every module a command-line run imports (the pipeline, the outputs, the figures) works
+    without scikit-learn, whose import takes about a second; only the estimator loads it."""
+    code = (
+        "import sys, spatialseg.cli, spatialseg.results, spatialseg.plots; "
+        "print('sklearn' in sys.modules); "
+        "from spatialseg import MotionSegmenter; "
+        "print('sklearn' in sys.modules)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["False", "True"]
+
+
 def test_simulate_write_read_round_trip(recording: Recording, tmp_path: Path) -> None:
     """What simulate makes (the windows asked for), write stores and read gives back:
     events, camera, depth maps, keyframes and ground truth."""
