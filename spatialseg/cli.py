@@ -135,11 +135,21 @@ def _fresh_run_dir(out_dir: Path) -> None:
         log.info("removed %s of an earlier run from %s", plural(len(stale), "output"), out_dir)
 
 
+#: ``output.plots``' value that adds each window's own figures to the summary figures.
+EVERY_WINDOW = "windows"
+
+
 def _check_output(output: Mapping[str, Any]) -> None:
     """Refuse an ``output.*`` switch that is not true or false (``output.h5=no`` is the
-    string 'no', which would read as true)."""
+    string 'no', which would read as true); ``output.plots`` may also be ``windows``."""
     for key, value in output.items():
-        boolean_setting(value, f"output.{key}")
+        if key == "plots" and value == EVERY_WINDOW:
+            continue
+        try:
+            boolean_setting(value, f"output.{key}")
+        except ValueError as error:
+            extra = f" (or {EVERY_WINDOW}: every window's figures too)" if key == "plots" else ""
+            raise ValueError(f"{error}{extra}") from None
 
 
 def run(cfg: DictConfig) -> dict[str, Any]:
@@ -200,8 +210,10 @@ def _run_tracked(cfg: DictConfig, out_dir: Path, tracked: LiveRun) -> dict[str, 
     if cfg.output.plots:
         from spatialseg.plots import figure_count, save_result_figures
 
-        log.info("drawing %s ...", plural(figure_count(len(seg.windows)), "figure"))
-        save_result_figures(out_dir, recording, seg)
+        every_window = cfg.output.plots == EVERY_WINDOW
+        count = figure_count(len(seg.windows), every_window=every_window)
+        log.info("drawing %s ...", plural(count, "figure"))
+        save_result_figures(out_dir, recording, seg, every_window=every_window)
     write_outputs(out_dir, recording, seg, summary, plain)
     _report(summary, out_dir, tracked.finish(summary, out_dir))
     return summary

@@ -33,6 +33,7 @@ __all__ = [
     "object_legend",
     "save_result_figures",
     "save_scene_preview",
+    "shown_windows",
 ]
 
 #: Object colours (tab10, by object id); unassigned events are drawn grey.
@@ -179,30 +180,124 @@ def _save(fig: Figure, path: Path) -> Path:
 #: The figures of each window (:func:`_window_figures`): warped volumes, contrast, theta.
 WINDOW_FIGURES = 3
 
+#: The most windows :func:`_save_windows` shows, evenly spaced over a longer recording.
+MAX_WINDOW_PANELS = 24
 
-def figure_count(windows: int) -> int:
+#: Panels per row of :func:`_save_windows`, and each panel's width (inches).
+_PANELS_PER_ROW = 4
+_PANEL_WIDTH = 3.6
+#: Room above each panel of :func:`_save_windows` for its title (inches).
+_WINDOW_TITLE = 0.3
+
+
+def figure_count(windows: int, *, every_window: bool = False) -> int:
     """How many figures :func:`save_result_figures` draws for ``windows`` windows."""
-    per_window = WINDOW_FIGURES + (1 if windows > 1 else 0)  # and its own events by object
-    return 1 + windows * per_window
+    if windows == 1:
+        return 1 + WINDOW_FIGURES
+    return 3 + (windows * (WINDOW_FIGURES + 1) if every_window else 0)
 
 
-def save_result_figures(out_dir: Path, recording: Recording, seg: SegmentationResult) -> list[Path]:
-    """Write the run's figures: events by object (all, and per window when there are
-    several; one colour per object id throughout), and per window the volume warped by each
-    cluster's motion (one object sharp, the others blurred) and the contrast/theta curves."""
-    k = seg.n_objects
-    whole = f"{recording.name}, all {len(seg.windows)} windows" if len(seg.windows) > 1 else ""
-    title = whole or recording.name
-    paths = [_save_clusters(out_dir / "clusters.png", recording, seg.labels, k, title)]
-    for w, window in enumerate(seg.windows):
-        suffix = f"_w{w}" if len(seg.windows) > 1 else ""
-        if suffix:
-            part = recording.select(seg.indices[w])
-            title = f"{recording.name}, window {w}"
-            labels = seg.labels[seg.indices[w]]
-            paths.append(_save_clusters(out_dir / f"clusters{suffix}.png", part, labels, k, title))
-        paths += _window_figures(out_dir, window, suffix)
+def save_result_figures(
+    out_dir: Path, recording: Recording, seg: SegmentationResult, *, every_window: bool = False
+) -> list[Path]:
+    """Write the run's figures, one colour per object id throughout: the events by object.
+    One window: its volume warped by each cluster's motion (one object sharp, the others
+    blurred) and its contrast and theta curves (the paper's Figures 6-7). Several windows:
+    each window's events by object on one page and each object's velocity over the windows;
+    ``every_window`` adds each window's own four figures (``NAME_wN.png``).
+
+    Decision: per-window figures grow with the recording (four per window, about 0.1 s
+    each), so a long recording gets two summary figures and the rest on request."""
+    k, windows = seg.n_objects, seg.windows
+    if len(windows) == 1:
+        paths = [_save_clusters(out_dir / "clusters.png", recording, seg.labels, k, recording.name)]
+        return paths + _window_figures(out_dir, windows[0], "")
+    title = f"{recording.name}, all {len(windows)} windows"
+    paths = [
+        _save_clusters(out_dir / "clusters.png", recording, seg.labels, k, title),
+        _save_windows(out_dir / "windows.png", recording, seg),
+        _save_objects(out_dir / "objects.png", recording, seg),
+    ]
+    for w, window in enumerate(windows if every_window else []):
+        part = recording.select(seg.indices[w])
+        labels = seg.labels[seg.indices[w]]
+        name = f"{recording.name}, window {w}"
+        paths.append(_save_clusters(out_dir / f"clusters_w{w}.png", part, labels, k, name))
+        paths += _window_figures(out_dir, window, f"_w{w}")
     return paths
+
+
+def shown_windows(n_windows: int) -> np.ndarray:
+    """The windows :func:`_save_windows` draws: all, or :data:`MAX_WINDOW_PANELS` evenly
+    spaced from the first to the last."""
+    count = min(n_windows, MAX_WINDOW_PANELS)
+    return np.unique(np.round(np.linspace(0, n_windows - 1, count)).astype(int))
+
+
+def _window_span(recording: Recording, indices: np.ndarray) -> tuple[float, float]:
+    """The first and last event time (s) of a window's events (0, 0 when it has none)."""
+    t = recording.events.t[indices]
+    return (float(t.min()), float(t.max())) if len(t) else (0.0, 0.0)
+
+
+def _save_windows(path: Path, recording: Recording, seg: SegmentationResult) -> Path:
+    """Each window's events coloured by object id, a panel per window (at most
+    :data:`MAX_WINDOW_PANELS`), with one legend: where each object is, window by window."""
+    shown = shown_windows(len(seg.windows))
+    cols = min(len(shown), _PANELS_PER_ROW)
+    rows = -(-len(shown) // cols)
+    panel = _PANEL_WIDTH * recording.camera.height / recording.camera.width
+    width = cols * _PANEL_WIDTH + 0.4 + _LEGEND_WIDTH
+    height = rows * (panel + _WINDOW_TITLE) + _MARGINS[3]
+    fig = Figure(figsize=(width, height))
+    fig.subplots_adjust(
+        left=0.2 / width,
+        right=1 - (0.2 + _LEGEND_WIDTH) / width,
+        bottom=0.1 / height,
+        top=1 - (_MARGINS[3] + _WINDOW_TITLE) / height,
+        wspace=0.05,
+        hspace=_WINDOW_TITLE / panel,
+    )
+    axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
+    for ax, w in zip(axes, shown, strict=False):
+        part = recording.select(seg.indices[w])
+        ax.imshow(cluster_image(part.events, seg.labels[seg.indices[w]], seg.n_objects))
+        start, end = _window_span(recording, seg.indices[w])
+        ax.set_title(f"window {w}: {start:.2f}-{end:.2f} s", fontsize="small")
+    for ax in axes:
+        ax.set_axis_off()
+    labels = seg.labels
+    object_legend(
+        axes[cols - 1], np.unique(labels[labels >= 0]), unassigned=bool((labels < 0).any())
+    )
+    some = "" if len(shown) == len(seg.windows) else f" ({len(shown)} of {len(seg.windows)})"
+    fig.suptitle(f"{recording.name}: events by object, window by window{some}")
+    return _save(fig, path)
+
+
+def _save_objects(path: Path, recording: Recording, seg: SegmentationResult) -> Path:
+    """Each object's velocity component by component over the windows (a point per window
+    it is found in, at the window's mid-time): one identity per object across windows."""
+    units = seg.windows[0].prepared.units
+    components = len(seg.windows[0].clustering.thetas[0])
+    fig = _result_figure(4 * components, 3.6, legend=True)
+    axes = np.atleast_1d(fig.subplots(1, components))
+    tracks: dict[int, list[tuple[float, np.ndarray]]] = {}
+    for w, window in enumerate(seg.windows):
+        mid = float(np.mean(_window_span(recording, seg.indices[w])))
+        for j, theta in enumerate(window.clustering.thetas):
+            tracks.setdefault(_object_id(window, j), []).append((mid, np.asarray(theta)))
+    ids = sorted(tracks)
+    for obj, colour in zip(ids, object_colours(ids), strict=True):
+        times = [t for t, _ in tracks[obj]]
+        values = np.array([theta for _, theta in tracks[obj]])
+        for a, ax in enumerate(axes):
+            ax.plot(times, values[:, a], "o-", color=colour, label=f"object {obj}")
+    for a, ax in enumerate(axes):
+        ax.set(xlabel="time (s)", ylabel=f"v{'xyz'[a]} ({units})")
+    axes[-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small")
+    fig.suptitle(f"{recording.name}: velocity of each object over the windows")
+    return _save(fig, path)
 
 
 def _save_clusters(

@@ -50,9 +50,9 @@ __all__ = [
 #: The data files a run writes into its directory, ``result.json`` last.
 DATA_FILES = ("labels.npy", "probabilities.npy", "segmentation.h5", "result.json")
 
-#: The figures a run writes (:mod:`spatialseg.plots`): ``NAME.png``, and with several
-#: windows ``NAME_w<window>.png``.
-FIGURES = ("clusters", "warped_volumes", "variance", "theta")
+#: The figures a run writes (:mod:`spatialseg.plots`): ``NAME.png``, and each window's
+#: own with ``output.plots=windows``, ``NAME_w<window>.png``.
+FIGURES = ("clusters", "warped_volumes", "variance", "theta", "windows", "objects")
 
 _FIGURE = re.compile(rf"(?:{'|'.join(FIGURES)})(?:_w\d+)?\.png")
 

@@ -40,7 +40,8 @@ def test_simulated_scene_run_writes_all_outputs(tmp_path):
     """Into a reused run directory: every file of the earlier run is replaced or gone."""
     out = tmp_path / "run"
     _stale_run_dir(out)
-    res = spatialseg("+scene=interior", "window.events=4000", f"hydra.run.dir={out}", cwd=tmp_path)
+    args = ("+scene=interior", "window.events=4000", "output.plots=windows")
+    res = spatialseg(*args, f"hydra.run.dir={out}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     result = json.loads((out / "result.json").read_text())
     labels = np.load(out / "labels.npy")
@@ -54,8 +55,9 @@ def test_simulated_scene_run_writes_all_outputs(tmp_path):
     assert all(len(c["theta"]) == 3 and np.isfinite(c["variance"]) for c in first)
     assert result["metrics"]["accuracy"] > 0.9
     assert {"load", "segment", "total"} <= set(result["timings"])
-    assert (out / "clusters.png").stat().st_size > 1000
-    for w in range(3):  # per window, suffixed
+    for png in ("clusters", "windows", "objects"):  # the summary
+        assert (out / f"{png}.png").stat().st_size > 1000
+    for w in range(3):  # and every window's own, suffixed
         for png in ("clusters", "warped_volumes", "variance", "theta"):
             assert (out / f"{png}_w{w}.png").stat().st_size > 1000
     # the earlier run's outputs are gone, the user's file and Hydra's config stay
@@ -342,3 +344,15 @@ def test_summary_table_names_objects_without_events_apart(caplog, tmp_path):
     assert lines[0].endswith("1 of 2 windows converged (window 0: iteration limit 20 reached)")
     assert _object_table("\n".join(f"][spatialseg][INFO] - {m}" for m in lines)) == {1: (980, 0, 1)}
     assert "  no events: object 0, 2 (a window's empty cluster)" in lines
+
+
+def test_an_unknown_plots_value_is_refused_naming_the_choices(tmp_path):
+    """output.plots takes true, false or windows; anything else is one line, exit 2."""
+    res = spatialseg(
+        "+scene=interior", "output.plots=all", f"hydra.run.dir={tmp_path}", cwd=tmp_path
+    )
+    assert res.returncode == 2 and res.stderr.strip() == (
+        "error: output.plots must be true or false, got 'all' (or windows: every window's "
+        "figures too)"
+    )
+    assert not (tmp_path / "result.json").exists()

@@ -166,12 +166,33 @@ def test_a_sweep_in_this_process_gets_a_bar_over_its_jobs(monkeypatch):
 
 
 def test_figure_count_is_what_save_result_figures_draws(two_windows, tmp_path):
+    """Two windows: the three summary figures, and with every window's own four more each."""
     from spatialseg.plots import save_result_figures
 
     cfg, rec = two_windows
     seg = segment_recording(rec, cfg, optimizers.create("ssa_ga"), seed=0, progress=False)
-    assert len(save_result_figures(tmp_path, rec, seg)) == figure_count(2) == 9
-    assert figure_count(1) == 4
+    summary = save_result_figures(tmp_path / "summary", rec, seg)
+    assert [p.name for p in summary] == ["clusters.png", "windows.png", "objects.png"]
+    assert len(summary) == figure_count(2) == 3
+    every = save_result_figures(tmp_path / "every", rec, seg, every_window=True)
+    assert len(every) == figure_count(2, every_window=True) == 11
+    assert {"clusters_w1.png", "theta_w1.png"} <= {p.name for p in every}
+    assert figure_count(1) == figure_count(1, every_window=True) == 4
+
+
+@pytest.mark.parametrize(
+    ("windows", "shown"),
+    [(1, [0]), (5, [0, 1, 2, 3, 4]), (24, list(range(24))), (100, None)],
+)
+def test_the_windows_figure_shows_at_most_its_panels_first_and_last_included(windows, shown):
+    from spatialseg.plots import MAX_WINDOW_PANELS, shown_windows
+
+    drawn = shown_windows(windows).tolist()
+    if shown is not None:
+        assert drawn == shown
+    else:
+        assert len(drawn) == MAX_WINDOW_PANELS and drawn[0] == 0 and drawn[-1] == windows - 1
+        assert drawn == sorted(set(drawn))
 
 
 def test_the_kernels_index_paths_and_a_warm_cache():
