@@ -57,32 +57,30 @@ def test_api_names_survive_importing_the_simulator_package() -> None:
     assert {"segment", "simulate", "read", "write", "MotionSegmenter"} <= set(spatialseg.__all__)
 
 
+def _loaded_before_and_after(first: str, module: str, then: str) -> list[str]:
+    """In a fresh interpreter: whether ``module`` is loaded after the imports ``first``,
+    then after the statement ``then`` (the words Python prints, 'True' or 'False')."""
+    loaded = f"print({module!r} in sys.modules)"
+    code = f"import sys; {first}; {loaded}; {then}; {loaded}"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    return done.stdout.split()
+
+
 def test_importing_the_package_leaves_the_renderer_unloaded() -> None:
     """``import spatialseg`` (every run, and a run on a recording needs no more) does not
     import the simulator's renderer; its names load on first use."""
-    code = (
-        "import sys, spatialseg; "
-        "print('spatialseg.simulate.simulator' in sys.modules); "
-        "from spatialseg.simulate import simulate_scene; "
-        "print('spatialseg.simulate.simulator' in sys.modules, callable(simulate_scene))"
-    )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.split() == ["False", "True", "True"]
+    then = "from spatialseg.simulate import simulate_scene; assert callable(simulate_scene)"
+    loaded = _loaded_before_and_after("import spatialseg", "spatialseg.simulate.simulator", then)
+    assert loaded == ["False", "True"]
 
 
 def test_a_run_from_the_command_line_leaves_scikit_learn_unloaded() -> None:
     """Every module a command-line run imports (the pipeline, the outputs, the figures) works
     without scikit-learn, whose import takes about a second; only the estimator loads it."""
-    code = (
-        "import sys, spatialseg.cli, spatialseg.results, spatialseg.plots; "
-        "print('sklearn' in sys.modules); "
-        "from spatialseg import MotionSegmenter; "
-        "print('sklearn' in sys.modules)"
-    )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.split() == ["False", "True"]
+    first = "import spatialseg.cli, spatialseg.results, spatialseg.plots"
+    then = "from spatialseg import MotionSegmenter"
+    assert _loaded_before_and_after(first, "sklearn", then) == ["False", "True"]
 
 
 def test_simulate_write_read_round_trip(recording: Recording, tmp_path: Path) -> None:
