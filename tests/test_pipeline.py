@@ -268,19 +268,21 @@ def test_a_bad_depth_change_cap_is_refused_before_the_run(value):
 
 def test_moving_camera_static_scene_is_one_motion():
     """ego_street (camera translating past layers from 1.6 to 8 m, a cyclist overtaking): the
-    spatial model finds the static scene as one motion; the planar one cannot (measured at
-    6,000 events: spatial 0.899-0.937 over seeds 0-3, seed 0 the lowest; planar 0.54-0.67
-    over seeds 0-1)."""
+    spatial model finds the static scene as one motion; the planar one mostly cannot.
+    Measured at 6,000 events (session 19's k-means), seeds 0-3: spatial 0.874-0.902, planar
+    0.502-0.918 (mean 0.678; seed 0 is its one good draw), so the claim is held over the
+    four seeds, not one."""
     with initialize_config_dir(str(conf_dir()), version_base="1.3"):
         cfg = OmegaConf.to_container(compose("config", overrides=["+scene=ego_street"]))
-    rec = load_scene(cfg["scene"], seed=0, window_events=6000)
-    accuracy = {}
-    for model in ("spatial", "planar"):
-        cfg_model = {**cfg, "model": _config(f"model={model}")["model"]}
-        seg = segment_recording(rec, cfg_model, optimizers.create("ssa_ga"), seed=0)
-        accuracy[model] = segmentation_metrics(seg.labels, rec.ground_truth.labels)["accuracy"]
-    assert accuracy["spatial"] >= 0.88
-    assert accuracy["spatial"] > accuracy["planar"] + 0.15
+    accuracy: dict[str, list[float]] = {"spatial": [], "planar": []}
+    for seed in range(4):
+        rec = load_scene(cfg["scene"], seed=seed, window_events=6000)
+        for model, scores in accuracy.items():
+            cfg_model = {**cfg, "model": _config(f"model={model}")["model"]}
+            seg = segment_recording(rec, cfg_model, optimizers.create("ssa_ga"), seed=seed)
+            scores.append(segmentation_metrics(seg.labels, rec.ground_truth.labels)["accuracy"])
+    assert min(accuracy["spatial"]) >= 0.85, accuracy
+    assert np.mean(accuracy["spatial"]) > np.mean(accuracy["planar"]) + 0.15, accuracy
 
 
 def test_events_on_occlusion_edges_do_not_steer_the_velocities():
