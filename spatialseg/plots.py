@@ -263,7 +263,8 @@ def _save_windows(path: Path, recording: Recording, seg: SegmentationResult) -> 
         part = recording.select(seg.indices[w])
         ax.imshow(cluster_image(part.events, seg.labels[seg.indices[w]], seg.n_objects))
         start, end = _window_span(recording, seg.indices[w])
-        ax.set_title(f"window {w}: {start:.2f}-{end:.2f} s", fontsize="small")
+        # a fixed y skips matplotlib's title placement, which measures every axis's ticks
+        ax.set_title(f"window {w}: {start:.2f}-{end:.2f} s", fontsize="small", y=1.0)
     for ax in axes:
         ax.set_axis_off()
     labels = seg.labels
