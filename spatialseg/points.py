@@ -180,12 +180,17 @@ def _search_extent(all_points: np.ndarray, grid: VoxelGrid, margin: float) -> np
 
 
 def search_bounds(
-    prepared: Prepared, max_displacement: float, max_depth_change: float | None = None
+    prepared: Prepared,
+    max_displacement: float,
+    max_depth_change: float | None = None,
+    windows: int = 1,
 ) -> np.ndarray:
     """Velocity box: a motion may move a point at most ``max_displacement`` times the grid's
-    extent (``prepared.search_extent`` when set) along each axis over the window (dim x 2,
+    extent (``prepared.search_extent`` when set) along each axis over one window (dim x 2,
     centred on zero); with ``max_depth_change`` (spatial model) ``|vz|`` is also capped so a
-    motion changes the points' median depth by at most that share over the window.
+    motion changes the points' median depth by at most that share over one window.
+    ``windows``: how many windows the points span (a window with its context windows); the
+    box is measured over one of them.
 
     Decision: the depth cap is a time to contact of at least ``1 / max_depth_change``
     windows. Without it a few far outliers in the depth maps stretch the depth extent (to
@@ -197,7 +202,7 @@ def search_bounds(
         extent = np.asarray(prepared.search_extent, float)
     else:
         extent = np.asarray(prepared.grid.shape, float) * prepared.grid.voxel_size
-    duration = max(float(prepared.t.max() - prepared.t.min()), 1e-9)
+    duration = max(float(prepared.t.max() - prepared.t.min()), 1e-9) / windows
     half = max_displacement * extent[: prepared.dim] / duration
     if max_depth_change is not None and prepared.dim == 3:
         depth = float(np.median(prepared.points[:, 2]))

@@ -312,7 +312,9 @@ class ClusteringSettings:
     #: velocities ignore them.
     step_edges: bool = True
     coarse: CoarseSettings = field(default_factory=CoarseSettings)
-    #: Search box: motion moves points at most this share of the grid per window.
+    #: Search box: motion moves points at most this share of the grid over the window (with
+    #: its context windows); an axis a final velocity presses on doubles, up to the whole
+    #: grid per window, and the window is clustered again from there.
     max_displacement: float = 0.15
     #: Search box, spatial model: |vz| changes the median depth by at most this share per
     #: window (time to contact >= 1/this windows); null: no cap.

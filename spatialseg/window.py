@@ -56,6 +56,7 @@ from spatialseg.starts import (
 )
 
 __all__ = [
+    "BOX_FACE",
     "FEW_EVENTS_PER_CLUSTER",
     "MIN_EVENTS_PER_CLUSTER",
     "WindowResult",
@@ -68,6 +69,7 @@ __all__ = [
     "prior_weights",
     "refit_velocities",
     "segment_window",
+    "widened_box",
 ]
 
 # The per-iteration, per-start and too-few-events lines stay on the logger they always had:
@@ -86,6 +88,10 @@ MIN_EVENTS_PER_CLUSTER = 10
 #: and 1,700 0.98; a window's usable events are its events with depth that the
 #: background-activity filter supports (55-85 % of them there).
 FEW_EVENTS_PER_CLUSTER = 200
+
+#: A velocity within this share of the search box's half-width from its face presses on
+#: it (:func:`widened_box`); the optimisers clip to the face, so a clipped motion sits on it.
+BOX_FACE = 0.02
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,19 +141,40 @@ def segment_window(
     timings["prepare"] = time.perf_counter() - start
     clustering = settings.clustering
     bounds = search_bounds(prepared, clustering.max_displacement, clustering.max_depth_change)
+    ceiling = search_bounds(
+        prepared, 1.0, clustering.max_depth_change, windows=len(window.depth_maps) - 1
+    )
     objectives: tuple[ModelEvaluator, tuple[StepStage, ...]] | None = None
     kept: tuple[ClusteringResult, motion_init.InitResult, str] | None = None
 
-    def seed_motion(group: np.ndarray, group_seed: int) -> np.ndarray:
-        """The image_flow start's single motion of a group of the points."""
+    def seed_motion(group: np.ndarray, group_seed: int, box: np.ndarray) -> np.ndarray:
+        """The image_flow start's single motion of a group of the points, in ``box``."""
         valid = np.zeros(len(window.events), dtype=bool)
         valid[np.flatnonzero(prepared.valid)[group]] = True
         part = replace(
             prepared, points=prepared.points[group], t=prepared.t[group], valid=valid, rest=None
         )
         flow = _with_start(settings, "image_flow")
-        init = initialise(window, part, flow, 1, bounds, seed=group_seed)
+        init = initialise(window, part, flow, 1, box, seed=group_seed)
         return init.thetas[0, : prepared.dim]
+
+    def cluster(init: motion_init.InitResult, method: str, box: np.ndarray) -> ClusteringResult:
+        """Algorithm 1 from ``init`` in the search box ``box`` (``method``: the start's name)."""
+        assert objectives is not None  # built before the first clustering
+        return _cluster_from(
+            init,
+            prepared,
+            objectives,
+            clustering,
+            optimizer,
+            box,
+            seed=seed,
+            on_iteration=_iteration_logger(progress, method, on_iteration),
+            alone=alone,
+            xy=xy,
+            seed_motion=lambda group, group_seed: seed_motion(group, group_seed, box),
+            auto=wanted is None,
+        )
 
     timings["init"] = timings["cluster"] = 0.0
     for method in starts:
@@ -171,20 +198,7 @@ def segment_window(
         start = time.perf_counter()
         if objectives is None:  # after the first start, so a tile start's volumes are freed
             objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
-        result = _cluster_from(
-            init,
-            prepared,
-            objectives,
-            clustering,
-            optimizer,
-            bounds,
-            seed=seed,
-            on_iteration=_iteration_logger(progress, method, on_iteration),
-            alone=alone,
-            xy=xy,
-            seed_motion=seed_motion,
-            auto=wanted is None,
-        )
+        result = cluster(init, method, bounds)
         timings["cluster"] += time.perf_counter() - start
         if progress is not None and len(starts) > 1:
             log.debug("%s, start %s: total contrast %.6g", progress, method, result.total)
@@ -192,6 +206,24 @@ def segment_window(
             kept = (result, init, method)
     assert kept is not None and objectives is not None  # init_candidates names a start
     result, init, method = kept
+    start = time.perf_counter()
+    while (wider := widened_box(result.thetas, bounds, ceiling)) is not None:
+        start_wider = previous_init(
+            result.thetas, prepared, objectives[0], clustering, wider, alone=alone
+        )
+        regrown = cluster(start_wider, f"{method}, box grown", wider)
+        kept_wider = _better(regrown, result, auto=wanted is None)
+        if progress is not None:
+            log.debug(
+                "%s: a velocity on the search box's face; box grown to +-%s, %s",
+                progress,
+                np.array2string(wider[:, 1], precision=3),
+                "kept" if kept_wider else "not kept",
+            )
+        if not kept_wider:
+            break
+        result, bounds = regrown, wider
+    timings["cluster"] += time.perf_counter() - start
     start = time.perf_counter()
     result = refit_velocities(result, prepared, t_ref, settings, bounds, seed=seed)
     timings["refit"] = time.perf_counter() - start
@@ -220,6 +252,28 @@ def segment_window(
     return WindowResult(
         labels, probabilities, result, prepared, t_ref, timings, bool(init.fallback), method
     )
+
+
+def widened_box(thetas: np.ndarray, bounds: np.ndarray, ceiling: np.ndarray) -> np.ndarray | None:
+    """The search box doubled (up to ``ceiling``) along each axis a velocity of ``thetas``
+    presses on (within :data:`BOX_FACE` of its face), or None when none presses on a face
+    that can still move.
+
+    Decision: the box (``clustering.max_displacement`` over the window's whole span) keeps
+    the optimiser's few evaluations where the motions are, but a real recording's fast
+    objects can lie outside it (the road recording's cars at a third of their speed). A
+    motion that ends on the face is the data asking for more, so only that axis grows,
+    until the points move at most the grid's whole extent (and the depth
+    ``clustering.max_depth_change``) per window; a box 3x wider everywhere cost most
+    families on the dev seeds (docs/method.md, "The search box").
+    """
+    half, top = bounds[:, 1], ceiling[:, 1]
+    reach = np.max(np.abs(np.asarray(thetas, dtype=np.float64)), axis=0)
+    pressed = (reach >= (1.0 - BOX_FACE) * half) & (half < top)
+    if not pressed.any():
+        return None
+    grown = np.where(pressed, np.minimum(2.0 * half, top), half)
+    return np.column_stack([-grown, grown])
 
 
 def check_events_per_cluster(n_events: int, k: int, name: str) -> None:

@@ -24,7 +24,7 @@ from spatialseg.scenes import load_scene
 from spatialseg.settings import RefitSettings, Settings, settings_from, smoothing
 from spatialseg.starts import previous_init
 from spatialseg.volume import VolumeObjective
-from spatialseg.window import check_config, prior_weights, segment_window
+from spatialseg.window import check_config, prior_weights, segment_window, widened_box
 
 
 def _config(*overrides: str, scene: str = "interior") -> dict:
@@ -257,6 +257,41 @@ def test_the_depth_change_cap_bounds_vz_by_the_median_depth_not_by_outliers():
     assert capped[2, 1] == pytest.approx(0.5 * np.median(points[:, 2]) / duration)
     np.testing.assert_array_equal(capped[:2], uncapped[:2])
     assert np.array_equal(search_bounds(prepared, 0.15, 1e6), uncapped)
+
+
+def test_the_search_box_is_one_windows_whatever_the_context():
+    """``windows``: points spanning three windows' time (a window with its context) get
+    one window's box, which the box grows up to (``widened_box``'s ceiling); without it
+    the box is the span's, a third as wide."""
+    from spatialseg.grid import grid_around
+    from spatialseg.points import Prepared
+
+    rng = np.random.default_rng(1)
+    points = np.column_stack([rng.uniform(-1, 1, (1000, 2)), rng.uniform(2.0, 4.0, 1000)])
+    grid = grid_around(points, np.array([0.05, 0.05, 0.1]), 0.1, 10**7)
+    one = rng.uniform(0.0, 0.5, 1000)
+    one[:2] = 0.0, 0.5
+    alone = Prepared(points, one, np.ones(1000, bool), grid, 3, "m/s")
+    span = Prepared(points, 3 * one, np.ones(1000, bool), grid, 3, "m/s")
+    expected = search_bounds(alone, 0.15, 0.5)
+    np.testing.assert_allclose(search_bounds(span, 0.15, 0.5, windows=3), expected)
+    np.testing.assert_allclose(search_bounds(span, 0.15, 0.5), expected / 3)
+
+
+def test_the_box_grows_only_along_an_axis_a_velocity_presses_on_up_to_its_ceiling():
+    """``widened_box``: a motion clipped to the face asks for more room on that axis only;
+    one inside the box, or on a face already at its ceiling, leaves the box as it is."""
+    box = np.array([[-1.0, 1.0], [-2.0, 2.0], [-0.5, 0.5]])
+    ceiling = np.array([[-3.0, 3.0], [-8.0, 8.0], [-0.5, 0.5]])
+    inside = np.array([[0.5, -1.5, 0.1], [-0.9, 0.0, 0.0]])
+    assert widened_box(inside, box, ceiling) is None
+    on_x = np.array([[0.5, -1.5, 0.1], [-1.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(widened_box(on_x, box, ceiling)[:, 1], [2.0, 2.0, 0.5])
+    grown = np.array([[-2.0, 2.0], [-2.0, 2.0], [-0.5, 0.5]])
+    on_grown_x = np.array([[-2.0, 1.0, 0.0]])
+    np.testing.assert_array_equal(widened_box(on_grown_x, grown, ceiling)[:, 1], [3.0, 2.0, 0.5])
+    on_vz_ceiling = np.array([[0.0, 0.0, -0.5]])
+    assert widened_box(on_vz_ceiling, box, ceiling) is None
 
 
 @pytest.mark.parametrize("value", [0, -1.0, "far", True])
