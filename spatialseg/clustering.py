@@ -237,9 +237,8 @@ def maximize_contrast(
 
 @dataclass(frozen=True)
 class StepStage:
-    """One stage of each cluster's theta-step: ``optimizer`` with ``budget`` evaluations on
-    ``evaluator``, whose events are ``subset`` of the P-step's (every one: ``slice(None)``).
-    Stages run in order, each from the velocity the one before found (coarse to fine)."""
+    """Each cluster's theta-step: ``optimizer`` with ``budget`` evaluations on
+    ``evaluator``, whose events are ``subset`` of the P-step's (every one: ``slice(None)``)."""
 
     evaluator: ClusterEvaluator
     optimizer: Maximizer
@@ -300,7 +299,7 @@ def iterative_clustering(
     seed: int,
     p_step_stride: int = 1,
     on_iteration: Callable[[IterationRecord], None] | None = None,
-    stages: Sequence[StepStage] = (),
+    step: StepStage | None = None,
 ) -> ClusteringResult:
     """Run Algorithm 1 from velocities ``init_thetas`` (K x dim) and memberships ``init_p``.
 
@@ -310,11 +309,11 @@ def iterative_clustering(
     the P-step samples it, so an event's response reflects its neighbourhood rather than
     the texture of a single voxel;
     ``p_step_stride`` does so on a grid that many times coarser in x and y (same total blur).
-    ``stages`` replace the theta-step's one stage (``optimizer`` with ``evals_per_step`` on
-    ``evaluator``), e.g. to optimise on a subset of the events or on a coarser grid first;
-    the P-step and the recorded contrasts always use ``evaluator``, every event.
+    ``step`` replaces the theta-step (``optimizer`` with ``evals_per_step`` on
+    ``evaluator``), e.g. to optimise on a subset of the events; the P-step and the recorded
+    contrasts always use ``evaluator``, every event.
     """
-    stages = stages or (StepStage(evaluator, optimizer, evals_per_step),)
+    step = step or StepStage(evaluator, optimizer, evals_per_step)
     thetas = np.array(init_thetas, dtype=np.float64, copy=True)
     k = thetas.shape[0]
     if k < 1:
@@ -332,13 +331,11 @@ def iterative_clustering(
         start = time.perf_counter()
         evals = 0
         for j in range(k):
-            for stage in stages:
-                stage.evaluator.set_weights(p[stage.subset, j])
-                seed_j = int(seeds[it, j])
-                thetas[j], n = maximize_contrast(
-                    stage.evaluator, stage.optimizer, thetas[j], bounds, stage.budget, seed_j
-                )
-                evals += n
+            step.evaluator.set_weights(p[step.subset, j])
+            thetas[j], n = maximize_contrast(
+                step.evaluator, step.optimizer, thetas[j], bounds, step.budget, int(seeds[it, j])
+            )
+            evals += n
         responses, values = cluster_responses(evaluator, thetas, p, p_step_sigma, p_step_stride)
         p = update_memberships(responses)
         previous, labels = labels, p.argmax(axis=1)

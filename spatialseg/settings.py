@@ -28,7 +28,6 @@ from spatialseg.checks import integer_setting, is_integer, number_setting, optio
 
 __all__ = [
     "ClusteringSettings",
-    "CoarseSettings",
     "DenoiseSettings",
     "DepthSettings",
     "EdpaSettings",
@@ -240,27 +239,6 @@ class InitSettings:
 
 
 @dataclass(frozen=True)
-class CoarseSettings:
-    """Coarse-to-fine theta-step: the optimiser on a coarser grid and/or fewer events, then
-    a local refinement at full resolution."""
-
-    #: The optimiser's grid this many times coarser in x and y (1 and events null: off).
-    stride: int = 1
-    #: The optimiser on at most this many of the theta-step's events; null: all.
-    events: int | None = None
-    #: An optimiser preset: the refinement's local optimiser.
-    refine: str = "nlopt_bobyqa"
-    #: The refinement's budget per cluster per iteration.
-    refine_evals: int = 10
-
-    def __post_init__(self) -> None:
-        integer_setting(self.stride, "clustering.coarse.stride", 1)
-        integer_setting(self.events, "clustering.coarse.events", 1, optional=True)
-        _check_optimizer_preset(self.refine, "clustering.coarse.refine")
-        integer_setting(self.refine_evals, "clustering.coarse.refine_evals", 0)
-
-
-@dataclass(frozen=True)
 class PStepAloneSettings:
     """The P-step's smoothing for a window clustered alone (no neighbouring windows), whose
     volumes hold a third of the events: blurred more."""
@@ -311,7 +289,6 @@ class ClusteringSettings:
     #: Events on an occlusion edge in the theta-step too; false: the P-step labels them,
     #: velocities ignore them.
     step_edges: bool = True
-    coarse: CoarseSettings = field(default_factory=CoarseSettings)
     #: Search box: motion moves points at most this share of the grid over the window (with
     #: its context windows); an axis a final velocity presses on doubles, up to the whole
     #: grid per window, and the window is clustered again from there.

@@ -144,7 +144,7 @@ def segment_window(
     ceiling = search_bounds(
         prepared, 1.0, clustering.max_depth_change, windows=len(window.depth_maps) - 1
     )
-    objectives: tuple[ModelEvaluator, tuple[StepStage, ...]] | None = None
+    objectives: tuple[ModelEvaluator, StepStage | None] | None = None
     kept: tuple[ClusteringResult, motion_init.InitResult, str] | None = None
 
     def seed_motion(group: np.ndarray, group_seed: int, box: np.ndarray) -> np.ndarray:
@@ -314,11 +314,13 @@ def _with_start(settings: Settings, method: str) -> Settings:
 
 def _window_objectives(
     prepared: Prepared, t_ref: float, settings: Settings, optimizer: Any, *, seed: int
-) -> tuple[ModelEvaluator, tuple[StepStage, ...]]:
-    """The P-step's evaluator over every event and the theta-step's stages, shared by the
-    window's starts."""
+) -> tuple[ModelEvaluator, StepStage | None]:
+    """The P-step's evaluator over every event and the theta-step on a sample of them
+    (:func:`_step_subset`; None: on every event), shared by the window's starts."""
     evaluator = window_objective(prepared, t_ref, settings)
-    return evaluator, _step_stages(prepared, t_ref, settings, optimizer, evaluator, seed=seed)
+    step = _step_subset(prepared, t_ref, settings, seed=seed)
+    budget = settings.clustering.evals_per_step
+    return evaluator, None if step is None else StepStage(step[0], optimizer, budget, step[1])
 
 
 def _step_subset(
@@ -350,39 +352,6 @@ def _step_subset(
     return window_objective(prepared, t_ref, settings, pool), pool
 
 
-def _step_stages(
-    prepared: Prepared,
-    t_ref: float,
-    settings: Settings,
-    optimizer: Any,
-    evaluator: ModelEvaluator,
-    *,
-    seed: int,
-) -> tuple[StepStage, ...]:
-    """The theta-step's stages: the optimiser on the theta-step's events (:func:`_step_subset`;
-    none: the loop's default stage); with ``clustering.coarse`` set, first on a grid
-    ``stride`` times coarser and at most ``events`` of them, then ``refine`` on them at full
-    resolution (a coarse-to-fine search: the global phase on the cheaper problem).
-    ``evaluator`` is the loop's, over every event: the refinement's when they all step."""
-    budget, coarse = settings.clustering.evals_per_step, settings.clustering.coarse
-    step = _step_subset(prepared, t_ref, settings, seed=seed)
-    if coarse.stride == 1 and coarse.events is None:
-        return () if step is None else (StepStage(step[0], optimizer, budget, step[1]),)
-    fine, pool = step or (evaluator, np.arange(len(prepared.t)))
-    sample = pool
-    if coarse.events is not None and len(pool) > coarse.events:
-        draw = np.random.default_rng(seed + 1).choice(len(pool), coarse.events, False)
-        sample = pool[np.sort(draw)]
-    grid = prepared.grid.coarsened(coarse.stride)
-    refine = optimizers.preset(coarse.refine)
-    return (
-        StepStage(
-            window_objective(prepared, t_ref, settings, sample, grid), optimizer, budget, sample
-        ),
-        StepStage(fine, refine, coarse.refine_evals, pool),
-    )
-
-
 def _rules(clustering: ClusteringSettings) -> ConvergenceRules:
     """The loop's stopping rules from ``clustering``."""
     return ConvergenceRules(
@@ -397,7 +366,7 @@ def _rules(clustering: ClusteringSettings) -> ConvergenceRules:
 def _cluster_from(
     init: motion_init.InitResult,
     prepared: Prepared,
-    objectives: tuple[ModelEvaluator, tuple[StepStage, ...]],
+    objectives: tuple[ModelEvaluator, StepStage | None],
     clustering: ClusteringSettings,
     optimizer: Any,
     bounds: np.ndarray,
@@ -424,7 +393,7 @@ def _cluster_from(
         mode=clustering.init_memberships,
         confidence=clustering.init_confidence,
     )
-    evaluator, stages = objectives
+    evaluator, step = objectives
     rules = _rules(clustering)
 
     def run(thetas: np.ndarray, p: np.ndarray, run_seed: int) -> ClusteringResult:
@@ -440,7 +409,7 @@ def _cluster_from(
             p_step_stride=stride,
             seed=run_seed,
             on_iteration=on_iteration,
-            stages=stages,
+            step=step,
         )
 
     result = run(init.thetas[:, : prepared.dim], init_p, seed)

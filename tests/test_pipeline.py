@@ -475,7 +475,7 @@ def test_p_step_sigma_pair_is_image_then_depth(interior):
     ("override", "message"),
     [
         ("init.tiles.refit=nope", r"init\.tiles\.refit: unknown optimizer 'nope'"),
-        ("clustering.coarse.refine=bobyqa", r"clustering\.coarse\.refine: unknown optimizer"),
+        ("clustering.refit.optimizer=bobyqa", r"clustering\.refit\.optimizer: unknown optimizer"),
         ("init.method=flows", r"init\.method must be one of .*got 'flows'"),
         ("init.auto=[tiles,x]", r"init\.auto must list one or more of"),
         ("clustering.p_step_sigma=-1", r"p_step_sigma must be a number >= 0"),
