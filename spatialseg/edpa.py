@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spatialseg.checks import is_integer
 from spatialseg.events import EventStream
 from spatialseg.recording import Camera, DepthMap, Recording
 
@@ -20,12 +19,10 @@ __all__ = [
     "UNKNOWN_DEPTH_POLICIES",
     "Lifted",
     "back_project",
-    "check_edge_radius",
     "dense_depth_bands",
     "event_depth",
     "fill_depth",
     "lift",
-    "occluder_depths",
     "voxel_size",
 ]
 
@@ -176,36 +173,6 @@ def _neighbourhood(d: np.ndarray, x: np.ndarray, y: np.ndarray, radius: int) -> 
     return np.where(inside, values, np.nan).reshape(len(x), -1)
 
 
-def occluder_depths(
-    z1: np.ndarray, z2: np.ndarray, x: np.ndarray, y: np.ndarray, *, edge_ratio: float, radius: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """The occluder's depth in both maps at occlusion-edge pixels (x, y): the map that sees
-    it (the nearer depth) keeps its value; the other gets that value times the depth change
-    of the occluder's own surface nearby (pixels within ``radius`` that are on no edge,
-    known in both maps and within ``edge_ratio`` of the occluder's depth: the median of
-    their ratio). Without such pixels both take the nearer depth.
-
-    Why: an occluder moving in depth (an approaching box; anything before a camera moving
-    forward) was at another depth when its edge crossed the pixel than when a map saw it;
-    the nearer depth alone put the box's early outline events 6 % too near (docs/method.md,
-    "EDPA")."""
-    pixels, back = np.unique(np.asarray(y, np.int64) * z1.shape[1] + x, return_inverse=True)
-    y, x = np.divmod(pixels, z1.shape[1])
-    first_sees = z1[y, x] <= z2[y, x]
-    near = np.minimum(z1[y, x], z2[y, x])
-    surface = _known(z1) & _known(z2) & ~occlusion_edges(z1, z2, edge_ratio)
-    seen = np.where(first_sees[:, None], *(_neighbourhood(z, x, y, radius) for z in (z1, z2)))
-    other = np.where(first_sees[:, None], *(_neighbourhood(z, x, y, radius) for z in (z2, z1)))
-    same = np.abs(seen - near[:, None]) <= edge_ratio * near[:, None]
-    usable = (_neighbourhood(surface.astype(np.float64), x, y, radius) == 1) & same
-    ratio = np.where(usable, other / np.where(usable, seen, 1.0), np.nan)
-    change = np.ones(len(x))
-    some = usable.any(axis=1)
-    change[some] = np.nanmedian(ratio[some], axis=1)
-    moved = near * change
-    return np.where(first_sees, near, moved)[back], np.where(first_sees, moved, near)[back]
-
-
 def back_project(x: np.ndarray, y: np.ndarray, z: np.ndarray, camera: Camera) -> np.ndarray:
     """Pinhole back-projection (N, 3): ``X = (x - cx) Z / fx``, ``Y = (y - cy) Z / fy``, Z."""
     x = np.asarray(x, dtype=np.float64)
@@ -237,19 +204,12 @@ def _bracketing_pair(t: np.ndarray, maps: tuple[DepthMap, ...]) -> np.ndarray:
     return np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(maps) - 2)
 
 
-def check_edge_radius(value: object) -> None:
-    """Refuse an ``edpa.edge_radius`` that is not an integer >= 0, in one line."""
-    if not is_integer(value, 0):
-        raise ValueError(f"edpa.edge_radius must be an integer >= 0, got {value!r}")
-
-
 def lift(
     window: Recording,
     *,
     unknown_depth: str,
     fill_radius: int,
     edge_ratio: float | None = None,
-    edge_radius: int = 0,
 ) -> Lifted:
     """Depth and 3-D position of each event of a window, per METHOD.md 1: each event between
     the two of the window's depth maps that bracket its time (a window has two; a span of
@@ -259,11 +219,8 @@ def lift(
     excludes it (``valid`` False; the pipeline labels it -1), "fill" takes, in each map,
     the median known depth within ``fill_radius`` pixels (:func:`fill_depth`) and
     interpolates those; an event still without depth is dropped. NaN never reaches
-    ``points``. ``edge_ratio`` is the occlusion-edge rule of :func:`event_depth`; with
-    ``edge_radius`` > 0 an edge event interpolates instead between the occluder's depths of
-    :func:`occluder_depths` (its surface's depth change within that many pixels).
+    ``points``. ``edge_ratio`` is the occlusion-edge rule of :func:`event_depth`.
     """
-    check_edge_radius(edge_radius)
     if unknown_depth not in UNKNOWN_DEPTH_POLICIES:
         raise ValueError(
             f"unknown_depth must be one of {UNKNOWN_DEPTH_POLICIES}, got {unknown_depth!r}"
@@ -283,12 +240,6 @@ def lift(
         depth[sel] = _interpolate(z1, z2, s, edge_ratio)
         edge = occlusion_edges(z1, z2, edge_ratio)
         on_edge[sel] = edge
-        if edge_radius and edge.any():
-            x, y = ev.x[sel][edge], ev.y[sel][edge]
-            o1, o2 = occluder_depths(
-                first.depth, second.depth, x, y, edge_ratio=edge_ratio, radius=edge_radius
-            )
-            depth[sel[edge]] = o1 + s[edge] * (o2 - o1)
         missing = ~np.isfinite(depth[sel])
         if unknown_depth == "fill" and missing.any():
             x, y = ev.x[sel][missing], ev.y[sel][missing]

@@ -83,7 +83,6 @@ def prepare(window: Recording, settings: Settings) -> Prepared:
         unknown_depth=lifting.unknown_depth,
         fill_radius=lifting.fill_radius,
         edge_ratio=lifting.edge_ratio,
-        edge_radius=lifting.edge_radius,
     )
     supported = support[lifted.valid]
     dense = edpa.dense_depth_bands(

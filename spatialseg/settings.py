@@ -120,14 +120,10 @@ class EdpaSettings:
     #: Maps differing by more than this share of the nearer depth mark an occlusion edge,
     #: where the event takes the nearer depth; null: always interpolate (the paper).
     edge_ratio: float | None = 0.2
-    #: px, > 0: an edge event's occluder changes depth as its own surface does within this
-    #: radius (an approaching object); 0: the nearer depth held still.
-    edge_radius: int = 0
 
     def __post_init__(self) -> None:
         integer_setting(self.fill_radius, "edpa.fill_radius", 1)
         optional_positive(self.edge_ratio, "edpa.edge_ratio")
-        integer_setting(self.edge_radius, "edpa.edge_radius", 0)
 
 
 @dataclass(frozen=True)

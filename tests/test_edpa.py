@@ -11,7 +11,6 @@ from spatialseg.edpa import (
     event_depth,
     fill_depth,
     lift,
-    occluder_depths,
     occlusion_edges,
     voxel_size,
 )
@@ -253,34 +252,13 @@ def _approaching_box() -> tuple[np.ndarray, np.ndarray]:
     return z1, z2
 
 
-def test_occluder_depths_follow_the_occluders_own_depth_change():
-    """Columns 6-7 are edges (wall, then box): the box's depth there is 3.6 in the second
-    map and, from its own surface nearby (4.0 -> 3.6), 4.0 in the first. An edge pixel with
-    no surface within the radius keeps the nearer depth in both."""
-    z1, z2 = _approaching_box()
-    x, y = np.array([6, 7, 7]), np.array([2, 0, 2])
-    o1, o2 = occluder_depths(z1, z2, x, y, edge_ratio=0.2, radius=2)
-    np.testing.assert_allclose(o1, [4.0, 4.0, 4.0])
-    np.testing.assert_allclose(o2, [3.6, 3.6, 3.6])
-    alone1, alone2 = occluder_depths(z1, z2, np.array([7]), np.array([2]), edge_ratio=0.2, radius=1)
-    assert alone1.tolist() == alone2.tolist() == [3.6]  # column 6 is an edge too: no surface
-    receding1, receding2 = occluder_depths(z2, z1, x, y, edge_ratio=0.2, radius=2)
-    np.testing.assert_allclose(receding1, o2)  # maps swapped: the box recedes
-    np.testing.assert_allclose(receding2, o1)
-
-
-def test_lift_interpolates_an_edge_event_between_the_occluders_depths():
-    """edge_radius > 0: an edge event halfway between the maps gets 3.8 m (the box then),
-    with 0 the nearer depth 3.6 m; a bad radius is refused in one line."""
+def test_lift_gives_an_edge_event_the_nearer_depth():
+    """An event on an occlusion edge (the approaching box's outline) takes the nearer of its
+    pixel's two depths, 3.6 m; one on the box's surface interpolates (3.8 m halfway)."""
     z1, z2 = _approaching_box()
     camera = Camera(fx=100.0, fy=100.0, cx=5.5, cy=2.0, width=12, height=5)
     ev = EventStream(np.array([7, 2]), np.array([2, 2]), np.array([11.0, 11.0]), np.ones(2), 12, 5)
     window = Recording(ev, camera, (DepthMap(T1, z1), DepthMap(T2, z2)))
-    moving = lift(window, unknown_depth="drop", fill_radius=1, edge_ratio=0.2, edge_radius=2)
-    still = lift(window, unknown_depth="drop", fill_radius=1, edge_ratio=0.2)
-    np.testing.assert_allclose(moving.depth, [3.8, 3.8])
-    np.testing.assert_allclose(still.depth, [3.6, 3.8])
-    assert moving.on_edge.tolist() == still.on_edge.tolist() == [True, False]
-    for bad in (-1, 1.5, True):
-        with pytest.raises(ValueError, match=r"^edpa\.edge_radius must be an integer >= 0, got"):
-            lift(window, unknown_depth="drop", fill_radius=1, edge_ratio=0.2, edge_radius=bad)
+    lifted = lift(window, unknown_depth="drop", fill_radius=1, edge_ratio=0.2)
+    np.testing.assert_allclose(lifted.depth, [3.6, 3.8])
+    assert lifted.on_edge.tolist() == [True, False]

@@ -619,12 +619,6 @@ def test_a_bad_relabel_prior_scale_is_refused_before_the_run(value):
         check_config(_config(f"clustering.relabel_prior_scale={value}"))
 
 
-@pytest.mark.parametrize("value", ["-1", "2.5", "wide"])
-def test_a_bad_edge_radius_is_refused_before_the_run(value):
-    with pytest.raises(ValueError, match=r"edpa\.edge_radius must be an integer( >= 0)?, got"):
-        check_config(_config(f"edpa.edge_radius={value}"))
-
-
 @pytest.mark.parametrize("value", ["-1.0", "[1.0,2.0,3.0]", "sharp"])
 @pytest.mark.parametrize("key", ["relabel_sigma", "p_step_alone.relabel_sigma"])
 def test_a_bad_relabel_sigma_is_refused_before_the_run(value, key):
@@ -644,20 +638,6 @@ def test_windows_with_neighbours_take_the_top_level_relabel_sigma():
         seg = segment_recording(rec, run_cfg, optimizers.create("ssa_ga"), seed=0)
         assert len(seg.windows) == 3
         assert all(("relabel" in w.timings) == relabelled for w in seg.windows)
-
-
-def test_edpa_edge_radius_reaches_the_lifted_points_of_edge_events_only():
-    """edpa.edge_radius changes the depth of events on occlusion edges (the approaching
-    box's outline), no other."""
-    cfg = _config(scene="approach")
-    _, window = next(load_scene(cfg["scene"], seed=0, window_events=4000).windows())
-    settings = settings_from(cfg)
-    still = prepare(window, settings)
-    moving = prepare(window, replace(settings, edpa=replace(settings.edpa, edge_radius=8)))
-    edge = still.on_edge
-    assert edge is not None and edge.any() and np.array_equal(edge, moving.on_edge)
-    np.testing.assert_array_equal(moving.points[~edge], still.points[~edge])
-    assert not np.allclose(moving.points[edge], still.points[edge])
 
 
 def test_spatial_velocities_pads_a_planar_model_with_zero_vz():
