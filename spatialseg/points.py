@@ -293,19 +293,14 @@ def window_objective(
     t_ref: float,
     settings: Settings,
     index: Any = slice(None),
-    grid: VoxelGrid | None = None,
     groups: np.ndarray | None = None,
 ) -> ModelEvaluator:
     """The configured objective (one cluster's contrast, weights set by the caller) over the
-    window's events ``index`` (default all) on ``grid`` (default the window's); ``groups``:
-    a group number per selected event, for :meth:`ModelEvaluator.group_values`
+    window's events ``index`` (default all) on the window's grid; ``groups``: a group
+    number per selected event, for :meth:`ModelEvaluator.group_values`
     (:func:`volume_objective`)."""
     volume = volume_objective(
-        prepared.points[index],
-        prepared.t[index] - t_ref,
-        prepared.grid if grid is None else grid,
-        settings,
-        groups,
+        prepared.points[index], prepared.t[index] - t_ref, prepared.grid, settings, groups
     )
     return ModelEvaluator(volume, prepared.dim)
 

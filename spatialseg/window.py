@@ -265,7 +265,8 @@ def widened_box(thetas: np.ndarray, bounds: np.ndarray, ceiling: np.ndarray) -> 
     motion that ends on the face is the data asking for more, so only that axis grows,
     until the points move at most the grid's whole extent (and the depth
     ``clustering.max_depth_change``) per window; a box 3x wider everywhere cost most
-    families on the dev seeds (docs/method.md, "The search box").
+    families on the dev seeds (docs/method.md, "The search box grows where a motion
+    presses on it").
     """
     half, top = bounds[:, 1], ceiling[:, 1]
     reach = np.max(np.abs(np.asarray(thetas, dtype=np.float64)), axis=0)
