@@ -347,16 +347,14 @@ def p_step_settings(
 def relabel_sigmas(
     clustering: ClusteringSettings, *, alone: bool
 ) -> tuple[float, float, float] | None:
-    """``clustering.relabel_sigma`` (``clustering.p_step_alone.relabel_sigma`` for a window
-    clustered alone) as (x, y, depth) voxels, or None (off).
+    """``clustering.relabel_sigma`` as (x, y, depth) voxels, or None (off, and always for a
+    window clustered alone).
 
     Decision: once the velocities are final (after the refit), one more P-step at them,
     smoothed less than the loop's, gives the labels. The loop needs its wider blur while
     velocities and memberships still move; at the final velocities a sharper response
     follows an object's outline more closely. A window alone holds a third of the events
     per voxel, and there it cost accuracy (docs/method.md, "Relabelling")."""
-    if alone:
-        value, key = clustering.p_step_alone.relabel_sigma, "clustering.p_step_alone.relabel_sigma"
-    else:
-        value, key = clustering.relabel_sigma, "clustering.relabel_sigma"
-    return None if value is None else smoothing(value, key)
+    if alone or clustering.relabel_sigma is None:
+        return None
+    return smoothing(clustering.relabel_sigma, "clustering.relabel_sigma")

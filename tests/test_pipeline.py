@@ -555,36 +555,25 @@ def test_the_moving_camera_preset_is_the_defaults():
     assert _config("+preset=moving_camera") == _config()
 
 
-def test_relabelling_is_one_p_step_at_the_final_velocities(interior):
-    """The labels come from one more P-step at the final (refitted) velocities, weighted by
-    the loop's memberships, smoothed by the relabel sigma and with the clusters' shares as a
-    prior where the motions agree (clustering.relabel_prior_scale); null keeps the loop's
-    memberships, and the velocities are the same either way. This window is clustered
-    alone, so clustering.p_step_alone.relabel_sigma is the one that counts."""
+def test_relabelling_is_one_p_step_at_the_final_velocities():
+    """A window clustered with its neighbours takes its labels from one more P-step at the
+    final (refitted) velocities, weighted by the loop's memberships, smoothed by
+    clustering.relabel_sigma and with the clusters' shares as a prior where the motions
+    agree (clustering.relabel_prior_scale); null keeps the loop's memberships, and the
+    velocities are the same either way. A window clustered alone is never relabelled."""
     from spatialseg.clustering import p_step
 
-    cfg, rec = interior
-    _, window = next(rec.windows())
+    cfg = _config("window.events=1500")
+    rec = load_scene(cfg["scene"], seed=0, window_events=1500, windows=3)
+    _, span, _ = list(rec.spans(1))[1]  # the middle window with both neighbours
+    _, alone = next(rec.windows())
 
-    def relabel(top, alone):
-        ccfg = cfg["clustering"]
-        return settings_from(
-            {
-                **cfg,
-                "clustering": {
-                    **ccfg,
-                    "relabel_sigma": top,
-                    "p_step_alone": {**ccfg["p_step_alone"], "relabel_sigma": alone},
-                },
-            }
-        )
+    def run(window, sigma):
+        relabel = {**cfg, "clustering": {**cfg["clustering"], "relabel_sigma": sigma}}
+        return segment_window(window, settings_from(relabel), optimizers.create("ssa_ga"), seed=0)
 
-    def run(top, alone):
-        return segment_window(window, relabel(top, alone), optimizers.create("ssa_ga"), seed=0)
-
-    loop, top_only, on = run(None, None), run([1.0, 0.5], None), run(None, [1.0, 0.5])
-    assert "relabel" not in loop.timings and "relabel" not in top_only.timings
-    assert np.array_equal(loop.labels, top_only.labels)
+    loop, on, alone_on = run(span, None), run(span, [1.0, 0.5]), run(alone, [1.0, 0.5])
+    assert "relabel" not in loop.timings and "relabel" not in alone_on.timings
     assert np.array_equal(loop.clustering.thetas, on.clustering.thetas)
     evaluator = window_objective(loop.prepared, loop.t_ref, settings_from(cfg))
     thetas, p = loop.clustering.thetas, loop.clustering.probabilities
@@ -620,24 +609,9 @@ def test_a_bad_relabel_prior_scale_is_refused_before_the_run(value):
 
 
 @pytest.mark.parametrize("value", ["-1.0", "[1.0,2.0,3.0]", "sharp"])
-@pytest.mark.parametrize("key", ["relabel_sigma", "p_step_alone.relabel_sigma"])
-def test_a_bad_relabel_sigma_is_refused_before_the_run(value, key):
-    with pytest.raises(ValueError, match=rf"clustering\.{key} must be a number"):
-        check_config(_config(f"clustering.{key}={value}"))
-
-
-def test_windows_with_neighbours_take_the_top_level_relabel_sigma():
-    """A window clustered with its neighbours (window.context=1) is relabelled by
-    clustering.relabel_sigma, whatever p_step_alone says; null there turns it off."""
-    cfg = _config("window.events=1500", "window.context=1")
-    rec = load_scene(cfg["scene"], seed=0, window_events=1500, windows=3)
-    ccfg = cfg["clustering"]
-    alone_on = {**ccfg["p_step_alone"], "relabel_sigma": [1.0, 1.0]}
-    for top, relabelled in (([1.0, 1.0], True), (None, False)):
-        run_cfg = {**cfg, "clustering": {**ccfg, "relabel_sigma": top, "p_step_alone": alone_on}}
-        seg = segment_recording(rec, run_cfg, optimizers.create("ssa_ga"), seed=0)
-        assert len(seg.windows) == 3
-        assert all(("relabel" in w.timings) == relabelled for w in seg.windows)
+def test_a_bad_relabel_sigma_is_refused_before_the_run(value):
+    with pytest.raises(ValueError, match=r"clustering\.relabel_sigma must be a number"):
+        check_config(_config(f"clustering.relabel_sigma={value}"))
 
 
 def test_spatial_velocities_pads_a_planar_model_with_zero_vz():
