@@ -31,7 +31,8 @@ def test_help_works_outside_the_checkout(tmp_path):
     ],
 )
 def test_user_mistakes_give_one_line(tmp_path, args, message):
-    res = spatialseg(*args, f"hydra.run.dir={tmp_path / 'out'}", cwd=tmp_path)
+    """Without tracking (test_tracking covers a mistake with an MLflow run open)."""
+    res = spatialseg(*args, "tracking=none", f"hydra.run.dir={tmp_path / 'out'}", cwd=tmp_path)
     assert res.returncode == 2
     assert message in res.stderr
     assert "Traceback" not in res.stderr
@@ -39,7 +40,7 @@ def test_user_mistakes_give_one_line(tmp_path, args, message):
 
 
 def test_unknown_config_name_lists_the_options(tmp_path):
-    res = spatialseg("+scene=interior", "optimizer=nosuch", cwd=tmp_path)
+    res = spatialseg("+scene=interior", "optimizer=nosuch", "tracking=none", cwd=tmp_path)
     assert res.returncode != 0
     assert "Could not find 'optimizer/nosuch'" in res.stderr
     assert "Traceback" not in res.stderr
@@ -49,6 +50,7 @@ def test_missing_recording_directory_is_one_line(tmp_path):
     res = spatialseg(
         "+scene=recording",
         f"scene.path={tmp_path / 'nope'}",
+        "tracking=none",
         f"hydra.run.dir={tmp_path}",
         cwd=tmp_path,
     )

@@ -113,7 +113,11 @@ def test_a_run_that_fails_early_leaves_no_earlier_outputs(tmp_path):
     out = tmp_path / "run"
     _stale_run_dir(out)
     res = spatialseg(
-        "+scene=interior", "init.tiles.refit=nope", f"hydra.run.dir={out}", cwd=tmp_path
+        "+scene=interior",
+        "init.tiles.refit=nope",
+        "tracking=none",
+        f"hydra.run.dir={out}",
+        cwd=tmp_path,
     )
     assert res.returncode == 2 and "init.tiles.refit: unknown optimizer" in res.stderr
     assert res.stderr.strip().count("\n") == 0 and "Traceback" not in res.stderr
@@ -133,6 +137,7 @@ def test_recording_without_ground_truth(recording_dir, tmp_path):
         "n_clusters=2",
         f"hydra.run.dir={out}",
         "output.plots=false",
+        "tracking=none",
         cwd=tmp_path,
     )
     assert res.returncode == 0, res.stderr
@@ -149,6 +154,7 @@ def test_recording_with_ground_truth_reports_metrics(recording_dir, tmp_path):
         "model=planar",
         f"hydra.run.dir={out}",
         "output.plots=false",
+        "tracking=none",
         cwd=tmp_path,
     )
     assert res.returncode == 0, res.stderr
@@ -349,7 +355,11 @@ def test_summary_table_names_objects_without_events_apart(caplog, tmp_path):
 def test_an_unknown_plots_value_is_refused_naming_the_choices(tmp_path):
     """output.plots takes true, false or windows; anything else is one line, exit 2."""
     res = spatialseg(
-        "+scene=interior", "output.plots=all", f"hydra.run.dir={tmp_path}", cwd=tmp_path
+        "+scene=interior",
+        "output.plots=all",
+        "tracking=none",
+        f"hydra.run.dir={tmp_path}",
+        cwd=tmp_path,
     )
     assert res.returncode == 2 and res.stderr.strip() == (
         "error: output.plots must be true or false, got 'all' (or windows: every window's "

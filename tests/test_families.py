@@ -26,7 +26,8 @@ from spatialseg.simulate.render import Renderer
 from spatialseg.simulate.scene import parse_scene
 from spatialseg.simulate.simulator import simulate_scene, texture_keys
 
-SEEDS = range(6)
+#: The draws each promise is checked on (a moving-camera draw simulates a pilot: seconds).
+SEEDS = range(4)
 
 
 def _relative(scene: dict) -> list[np.ndarray]:
@@ -60,7 +61,7 @@ def _middle_render(family: str, seed: int):
 
 @pytest.mark.parametrize("family", list(FAMILIES))
 def test_a_draw_is_deterministic_per_seed_and_differs_between_seeds(family):
-    first, again, other = _drawn(family, 3), draw_scene(family, 3), _drawn(family, 4)
+    first, again, other = _drawn(family, 1), draw_scene(family, 1), _drawn(family, 2)
     assert first.scene == again.scene and first.modifiers == again.modifiers
     assert first.windows == again.windows and first.time_offset == again.time_offset
     assert first.scene != other.scene

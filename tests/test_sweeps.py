@@ -18,7 +18,14 @@ import paper_figures  # noqa: E402
 import sweep_report  # noqa: E402
 from _common import split_overrides  # noqa: E402
 
-TINY = ("window.events=2000", "output.plots=false", "output.progress=false")
+#: A quick job (the image-flow start, a short loop): these tests are about sweeps.
+TINY = (
+    "window.events=2000",
+    "output.plots=false",
+    "output.progress=false",
+    "init.method=image_flow",
+    "clustering.max_iterations=4",
+)
 
 
 def _client(db: Path):

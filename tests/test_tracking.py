@@ -18,7 +18,13 @@ from spatialseg.settings import Settings
 from spatialseg.tracking import SweepCallback, browse_hint, git_commit
 from tests.test_cli import spatialseg
 
-FAST = ("window.events=3000", "output.plots=false")
+#: A quick run (the image-flow start, a short loop): these tests are about tracking.
+FAST = (
+    "window.events=3000",
+    "output.plots=false",
+    "init.method=image_flow",
+    "clustering.max_iterations=4",
+)
 REPO = Path(__file__).resolve().parents[1]
 
 
