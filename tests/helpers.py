@@ -10,6 +10,10 @@ import numpy as np
 
 from spatialseg.recording import Recording
 
+#: Overrides for a quick clustering (the image-flow start, a 4-iteration loop), for tests
+#: about what surrounds the segmentation (tracking, sweeps), not about its result.
+QUICK_LOOP = ("init.method=image_flow", "clustering.max_iterations=4")
+
 
 def run_module(module: str, *args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     """Run ``python -m MODULE ARGS`` in ``cwd`` the way a user does, capturing its output."""

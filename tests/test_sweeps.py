@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.helpers import QUICK_LOOP
 from tests.test_cli import spatialseg
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
@@ -18,14 +19,7 @@ import paper_figures  # noqa: E402
 import sweep_report  # noqa: E402
 from _common import split_overrides  # noqa: E402
 
-#: A quick job (the image-flow start, a short loop): these tests are about sweeps.
-TINY = (
-    "window.events=2000",
-    "output.plots=false",
-    "output.progress=false",
-    "init.method=image_flow",
-    "clustering.max_iterations=4",
-)
+TINY = ("window.events=2000", "output.plots=false", "output.progress=false", *QUICK_LOOP)
 
 
 def _client(db: Path):

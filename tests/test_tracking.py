@@ -16,15 +16,10 @@ from omegaconf import OmegaConf
 import spatialseg as package
 from spatialseg.settings import Settings
 from spatialseg.tracking import SweepCallback, browse_hint, git_commit
+from tests.helpers import QUICK_LOOP
 from tests.test_cli import spatialseg
 
-#: A quick run (the image-flow start, a short loop): these tests are about tracking.
-FAST = (
-    "window.events=3000",
-    "output.plots=false",
-    "init.method=image_flow",
-    "clustering.max_iterations=4",
-)
+FAST = ("window.events=3000", "output.plots=false", *QUICK_LOOP)
 REPO = Path(__file__).resolve().parents[1]
 
 
