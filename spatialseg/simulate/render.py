@@ -101,6 +101,11 @@ class Renderer:
         self.rx = (np.arange(cam.width) - cam.cx) / cam.fx
         self.ry = (np.arange(cam.height) - cam.cy) / cam.fy
         self.axes = [_plane_axes(p.normal) for p in scene.background]
+        # n . (rx, ry, 1) per pixel: fixed for the recording, since planes do not turn
+        self.facing = [
+            p.normal[0] * self.rx[None, :] + p.normal[1] * self.ry[:, None] + p.normal[2]
+            for p in scene.background
+        ]
         relative = [b.velocity - scene.ego_velocity for b in scene.objects]
         self.velocities = np.array([-scene.ego_velocity, *relative]).reshape(-1, 3)
         self.camera_moves = bool(np.any(scene.ego_velocity))
@@ -113,10 +118,8 @@ class Renderer:
         depth = np.full(shape, np.inf)
         surface = np.zeros(shape, dtype=np.int32)
         for k, plane in enumerate(self.scene.background):
-            n = plane.normal
-            facing = n[0] * self.rx[None, :] + n[1] * self.ry[:, None] + n[2]
             with np.errstate(divide="ignore", invalid="ignore"):
-                z = np.float64(n @ (plane.point - centre)) / facing
+                z = np.float64(plane.normal @ (plane.point - centre)) / self.facing[k]
             nearer = (z > 0) & (z < depth)
             depth[nearer] = z[nearer]
             surface[nearer] = k
