@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from spatialseg.simulate.scene import Texture
+from spatialseg.simulate.texture import _MIX_1 as MIX_1
+from spatialseg.simulate.texture import _MIX_2 as MIX_2
+from spatialseg.simulate.texture import _MUL_I as MUL_I
+from spatialseg.simulate.texture import _MUL_J as MUL_J
 from spatialseg.simulate.texture import sample_texture
-
-MUL_I, MUL_J = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xC2B2AE3D27D4EB4F)
-MIX_1, MIX_2 = np.uint64(0xFF51AFD7ED558CCD), np.uint64(0xC4CEB9FE1A85EC53)
 
 
 def _hashed(i: np.ndarray, j: np.ndarray, key: np.uint64) -> np.ndarray:
