@@ -382,15 +382,8 @@ REPAIR_TILE = 16.0
 POOR_RESPONSE = 0.3
 #: A group needs this many poorly explained events to seed a motion.
 MIN_GROUP = 30
-#: P-steps with equal priors that grow a motion :func:`grow_clusters` adds from its group
-#: (the count its required gain was chosen with).
+#: P-steps with equal priors that grow a re-seeded motion's events from its group.
 RESEED_STEPS = 3
-#: :func:`split_and_merge` grows a re-seeded motion until under :data:`SETTLED` of the events
-#: change cluster in one P-step, at most this many (after three, a cart emptied on purpose
-#: ended with half its events in the other cluster: 0.85 of the events right, 0.9997 settled).
-SETTLE_STEPS = 20
-#: Share of the events changing cluster in a P-step below which the memberships hold.
-SETTLED = 0.005
 
 
 def weak_cluster(thetas: np.ndarray, p: np.ndarray, repair: Repair) -> int | None:
@@ -429,79 +422,21 @@ def worst_explained(responses: np.ndarray, p: np.ndarray, xy: np.ndarray) -> np.
 
 
 def _reseeded(
-    p: np.ndarray,
-    slot: int,
-    group: np.ndarray,
-    thetas: np.ndarray,
-    repair: Repair,
-    *,
-    settle: bool = False,
+    p: np.ndarray, slot: int, group: np.ndarray, thetas: np.ndarray, repair: Repair
 ) -> np.ndarray:
     """Memberships after re-seeding ``slot`` with ``group``'s motion: the slot's volume built
     from the group alone, the others from their events, each event then goes to the motions
     by their volumes per unit of membership (equal priors), so the new motion takes every
-    event it explains better than the cluster holding it, not only the group:
-    :data:`RESEED_STEPS` such P-steps, or with ``settle`` until they hold (:data:`SETTLED`)."""
+    event it explains better than the cluster holding it, not only the group."""
     seeded = p.copy()
     seeded[:, slot] = 0.0
     seeded /= np.maximum(seeded.sum(axis=1, keepdims=True), 1e-300)
     seeded[group] = 0.0
     seeded[group, slot] = 1.0
-    for _ in range(SETTLE_STEPS if settle else RESEED_STEPS):  # grown from the group outwards
+    for _ in range(RESEED_STEPS):  # the new motion's events grow from the group outwards
         mass = np.maximum(seeded.sum(axis=0), 1e-300)
-        grown = update_memberships(repair.responses(thetas, seeded) / mass)
-        held = np.mean(grown.argmax(axis=1) != seeded.argmax(axis=1)) < SETTLED
-        seeded = grown
-        if settle and held:
-            break
+        seeded = update_memberships(repair.responses(thetas, seeded) / mass)
     return seeded
-
-
-def merge_candidate(thetas: np.ndarray, p: np.ndarray, repair: Repair) -> int:
-    """The slot a split-and-merge move frees: a wasted one (:func:`weak_cluster`), else the
-    smaller (by likeliest events) of the two clusters whose motions are nearest, whose events
-    the other can best take over."""
-    slot = weak_cluster(thetas, p, repair)
-    if slot is not None:
-        return slot
-    shares = np.bincount(p.argmax(axis=1), minlength=p.shape[1])
-    pairs = [(j, k) for j in range(len(thetas)) for k in range(j + 1, len(thetas))]
-    j, k = min(pairs, key=lambda pair: repair.separation(thetas[pair[0]], thetas[pair[1]]))
-    return j if shares[j] < shares[k] else k
-
-
-def split_and_merge(result: ClusteringResult, repair: Repair, *, seed: int) -> ClusteringResult:
-    """A fixed number of motions repaired by split-and-merge moves (Ueda et al., 2000): free
-    one slot (:func:`merge_candidate`; its events go to the others), re-seed it from the
-    worst-explained coherent group of events (:func:`worst_explained`) and run the loop; a
-    move is kept while it raises the total contrast, at most one per cluster.
-
-    Why: the loop keeps whatever its start gave it, so a collapsed, duplicated or wrongly
-    shared cluster stays; a move starts the missing motion where the events say one is
-    missing, instead of clustering again from other starts."""
-    seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=2 * len(result.thetas))
-    for move in range(len(result.thetas) if len(result.thetas) > 1 else 0):
-        p = result.probabilities
-        group = worst_explained(repair.responses(result.thetas, p), p, repair.xy)
-        if group is None:
-            break
-        slot = merge_candidate(result.thetas, p, repair)
-        thetas = result.thetas.copy()
-        thetas[slot] = repair.fit(group, int(seeds[2 * move]))
-        seeded = _reseeded(p, slot, group, thetas, repair, settle=True)
-        candidate = repair.run(thetas, seeded, int(seeds[2 * move + 1]))
-        log.info(
-            "cluster %d re-seeded from %d events: total contrast %.6g -> %.6g, %s",
-            slot,
-            len(group),
-            result.total,
-            candidate.total,
-            "kept" if candidate.total > result.total else "not kept",
-        )
-        if candidate.total <= result.total:
-            break
-        result = candidate
-    return result
 
 
 #: A motion added by :func:`grow_clusters` must raise the sharpness by this share (5 % until

@@ -30,7 +30,6 @@ from spatialseg.clustering import (
     iterative_clustering,
     maximize_contrast,
     p_step,
-    split_and_merge,
     update_memberships,
 )
 from spatialseg.depth import make_depth_source
@@ -159,25 +158,22 @@ def segment_window(
         init = initialise(window, part, flow, 1, box, seed=group_seed)
         return init.thetas[0, : prepared.dim]
 
-    def repair(method: str, box: np.ndarray) -> Repair:
-        """The loop and its moves in the search box ``box`` (``method``: the start's name)."""
+    def cluster(init: motion_init.InitResult, method: str, box: np.ndarray) -> ClusteringResult:
+        """Algorithm 1 from ``init`` in the search box ``box`` (``method``: the start's name)."""
         assert objectives is not None  # built before the first clustering
-        return _repair(
+        return _cluster_from(
+            init,
             prepared,
             objectives,
             clustering,
             optimizer,
             box,
+            seed=seed,
             on_iteration=_iteration_logger(progress, method, on_iteration),
             alone=alone,
             xy=xy,
             seed_motion=lambda group, group_seed: seed_motion(group, group_seed, box),
-        )
-
-    def cluster(init: motion_init.InitResult, method: str, box: np.ndarray) -> ClusteringResult:
-        """Algorithm 1 from ``init`` in the search box ``box`` (``method``: the start's name)."""
-        return _cluster_from(
-            init, prepared, clustering, repair(method, box), seed=seed, auto=wanted is None
+            auto=wanted is None,
         )
 
     timings["init"] = timings["cluster"] = 0.0
@@ -227,8 +223,6 @@ def segment_window(
         if not kept_wider:
             break
         result, bounds = regrown, wider
-    if wanted is not None:  # n_clusters=auto grew and shrank its clusters already
-        result = split_and_merge(result, repair(f"{method}, moves", bounds), seed=seed + 1)
     timings["cluster"] += time.perf_counter() - start
     start = time.perf_counter()
     result = refit_velocities(result, prepared, t_ref, settings, bounds, seed=seed)
@@ -370,24 +364,36 @@ def _rules(clustering: ClusteringSettings) -> ConvergenceRules:
     )
 
 
-def _repair(
+def _cluster_from(
+    init: motion_init.InitResult,
     prepared: Prepared,
     objectives: tuple[ModelEvaluator, StepStage | None],
     clustering: ClusteringSettings,
     optimizer: Any,
     bounds: np.ndarray,
     *,
+    seed: int,
     on_iteration: Any,
     alone: bool,
     xy: np.ndarray,
     seed_motion: Any,
-) -> Repair:
-    """The configured loop in the search box ``bounds`` (``alone``: the window has no
-    neighbouring windows, :func:`~spatialseg.points.p_step_settings`) and what the
-    split-and-merge moves need beside it (:class:`~spatialseg.clustering.Repair`; ``xy``:
-    the points' image positions; ``seed_motion(points, seed)``: the motion of a group of
-    points)."""
+    auto: bool = False,
+) -> ClusteringResult:
+    """Algorithm 1 from one start: its memberships, then the configured loop (``alone``: the
+    window has no neighbouring windows, :func:`~spatialseg.points.p_step_settings`); with
+    ``auto`` (``n_clusters=auto``) the clusters then grow and shrink
+    (:func:`spatialseg.clustering.grow_clusters`, up to ``clustering.max_clusters``;
+    ``xy``: the points' image positions; ``seed_motion(points, seed)``: the motion of a
+    group of points)."""
     sigmas, stride = p_step_settings(clustering, alone=alone)
+    init_p = initial_memberships(
+        prepared.grid.coordinates(prepared.points),
+        prepared.grid.voxel_size,
+        init.labels,
+        len(init.thetas),
+        mode=clustering.init_memberships,
+        confidence=clustering.init_confidence,
+    )
     evaluator, step = objectives
     rules = _rules(clustering)
 
@@ -407,38 +413,16 @@ def _repair(
             step=step,
         )
 
-    return Repair(
+    result = run(init.thetas[:, : prepared.dim], init_p, seed)
+    if not auto:
+        return result
+    repair = Repair(
         run=run,
         responses=lambda thetas, p: cluster_responses(evaluator, thetas, p, sigmas, stride)[0],
         fit=seed_motion,
         separation=lambda a, b: motion_separation(prepared, a, b),
         xy=xy,
     )
-
-
-def _cluster_from(
-    init: motion_init.InitResult,
-    prepared: Prepared,
-    clustering: ClusteringSettings,
-    repair: Repair,
-    *,
-    seed: int,
-    auto: bool = False,
-) -> ClusteringResult:
-    """Algorithm 1 from one start: its memberships, then the loop (``repair.run``); with
-    ``auto`` (``n_clusters=auto``) the clusters then grow and shrink
-    (:func:`spatialseg.clustering.grow_clusters`, up to ``clustering.max_clusters``)."""
-    init_p = initial_memberships(
-        prepared.grid.coordinates(prepared.points),
-        prepared.grid.voxel_size,
-        init.labels,
-        len(init.thetas),
-        mode=clustering.init_memberships,
-        confidence=clustering.init_confidence,
-    )
-    result = repair.run(init.thetas[:, : prepared.dim], init_p, seed)
-    if not auto:
-        return result
     return grow_clusters(result, repair, seed=seed + 1, max_clusters=clustering.max_clusters)
 
 

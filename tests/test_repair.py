@@ -6,13 +6,9 @@ from __future__ import annotations
 import numpy as np
 
 import optimizers
-from spatialseg import motion_init, starts
-from spatialseg import window as window_module
 from spatialseg.clustering import Repair, weak_cluster, worst_explained
-from spatialseg.metrics import segmentation_metrics
 from spatialseg.scenes import load_scene
 from spatialseg.settings import settings_from
-from spatialseg.starts import StartInput, register_start
 from spatialseg.window import segment_window
 from tests.test_pipeline import _config
 
@@ -60,34 +56,3 @@ def test_n_clusters_auto_finds_one_two_and_three_motions():
         res = segment_window(window, settings_from(cfg), optimizers.create("ssa_ga"), seed=0)
         found[len(rec.ground_truth.motions)] = len(res.clustering.thetas)
     assert found == {1: 1, 2: 2, 3: 3}
-
-
-def test_a_cluster_emptied_on_purpose_is_reseeded(monkeypatch):
-    """A start that gives both clusters the first cart's motion and every event to cluster 0
-    (the second cluster empty): the split-and-merge move re-seeds the empty slot from the
-    worst-explained events, so the window ends with two distinct motions and its events
-    right; without the move (the loop alone) it keeps one motion twice."""
-    monkeypatch.setattr(starts, "_REGISTRY", dict(starts._REGISTRY))
-    cfg = _config("window.events=15000", "window.context=0", "init.method=collapsed")
-    rec = load_scene(dict(cfg["scene"]), seed=0, window_events=15000)
-    _, window = next(rec.windows())
-    truth = np.array(list(rec.ground_truth.motions.values()))
-
-    @register_start("collapsed")
-    def collapsed(given: StartInput) -> motion_init.InitResult:
-        labels = np.zeros(len(given.prepared.points), dtype=np.int64)
-        flows = np.full((len(labels), 3), np.nan)
-        return motion_init.InitResult(np.tile(truth[0], (given.k, 1)), flows, 0, False, labels)
-
-    def segmented(moves: bool) -> tuple[float, np.ndarray]:
-        if not moves:
-            monkeypatch.setattr(window_module, "split_and_merge", lambda result, *a, **k: result)
-        res = segment_window(window, settings_from(cfg), optimizers.create("ssa_ga"), seed=0)
-        accuracy = segmentation_metrics(res.labels, window.ground_truth.labels)["accuracy"]
-        return accuracy, res.clustering.thetas
-
-    repaired, thetas = segmented(moves=True)
-    alone, alone_thetas = segmented(moves=False)
-    assert repaired >= 0.9 and repaired > alone + 0.2, (repaired, alone)
-    assert np.linalg.norm(thetas[0] - thetas[1]) > 0.5 * np.linalg.norm(truth[0] - truth[1])
-    assert np.linalg.norm(alone_thetas[0] - alone_thetas[1]) < np.linalg.norm(thetas[0] - thetas[1])
