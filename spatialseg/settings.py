@@ -312,6 +312,10 @@ class ClusteringSettings:
     max_clusters: int = 5
     #: Label -1 when an event's largest membership is below this.
     min_probability: float = 0.0
+    #: The labels' Potts smoothness (spatialseg.mrf): the cost, in units of an event's
+    #: log-membership, of each pair of space-time neighbours labelled apart (chosen on the
+    #: dev split among 0.3, 1 and 3: docs/results.md); 0: each event its likeliest cluster.
+    smoothness: float = 3.0
     refit: RefitSettings = field(default_factory=RefitSettings)
 
     def __post_init__(self) -> None:
@@ -332,6 +336,7 @@ class ClusteringSettings:
         optional_positive(self.relabel_prior_scale, "clustering.relabel_prior_scale")
         integer_setting(self.max_clusters, "clustering.max_clusters", 1)
         _in_range(self.min_probability, "clustering.min_probability", 0, 1, open_low=False)
+        number_setting(self.smoothness, "clustering.smoothness", 0)
         for sigma, stride, prefix in (
             (self.p_step_sigma, self.p_step_stride, "clustering.p_step_"),
             (self.p_step_alone.sigma, self.p_step_alone.stride, "clustering.p_step_alone."),

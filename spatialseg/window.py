@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import optimizers
-from spatialseg import motion_init
+from spatialseg import motion_init, mrf
 from spatialseg.clustering import (
     ClusteringResult,
     ConvergenceRules,
@@ -46,7 +46,7 @@ from spatialseg.points import (
     volume_objective,
     window_objective,
 )
-from spatialseg.recording import Recording
+from spatialseg.recording import Camera, Recording
 from spatialseg.settings import ClusteringSettings, Settings, settings_from
 from spatialseg.starts import (
     PREVIOUS,
@@ -249,6 +249,10 @@ def segment_window(
     labels = assign_labels(
         probabilities[prepared.labelled], prepared.labelled, clustering.min_probability
     )
+    if clustering.smoothness > 0:
+        start = time.perf_counter()
+        labels = smoothed_labels(window, prepared, result, probabilities, labels, clustering)
+        timings["smooth"] = time.perf_counter() - start
     return WindowResult(
         labels, probabilities, result, prepared, t_ref, timings, bool(init.fallback), method
     )
@@ -563,6 +567,47 @@ def nearest_memberships(
     mean = np.column_stack(sums) / counts[:, None]
     tree = cKDTree(unique, compact_nodes=False, balanced_tree=False)
     return mean[tree.query(queries)[1]]
+
+
+def image_speed(prepared: Prepared, thetas: np.ndarray, p: np.ndarray, camera: Camera) -> float:
+    """The fitted events' median image speed (pixels per second) under their likeliest
+    motion: a planar velocity is one; a spatial one moves a point (X, Y, Z) across the image
+    at ``f (v_xy Z - XY v_z) / Z^2``."""
+    if not len(p):
+        return 0.0
+    own = spatial_velocities(thetas)[p.argmax(axis=1)]
+    if prepared.dim == 2:
+        return float(np.median(np.linalg.norm(own[:, :2], axis=1)))
+    x, y, z = prepared.points.T
+    u = camera.fx * (own[:, 0] * z - x * own[:, 2]) / z**2
+    v = camera.fy * (own[:, 1] * z - y * own[:, 2]) / z**2
+    return float(np.median(np.hypot(u, v)))
+
+
+def smoothed_labels(
+    window: Recording,
+    prepared: Prepared,
+    result: ClusteringResult,
+    probabilities: np.ndarray,
+    labels: np.ndarray,
+    clustering: ClusteringSettings,
+) -> np.ndarray:
+    """``labels`` (N,) with every labelled event's label Potts-smoothed (:mod:`spatialseg.mrf`,
+    weight ``clustering.smoothness``, from its memberships ``probabilities``, N x K);
+    neighbours in space-time, the time scaled by the events' image speed
+    (:func:`image_speed`; at least a pixel over the window). Unlabelled events stay -1."""
+    index = np.flatnonzero(labels >= 0)
+    if len(index) < 2:
+        return labels
+    ev = window.events
+    t = ev.t[index]
+    span = max(float(t.max() - t.min()), 1e-9)
+    speed = max(image_speed(prepared, result.thetas, result.probabilities, window.camera), 1 / span)
+    xy = np.column_stack([ev.x[index], ev.y[index]])
+    first, second = mrf.neighbour_pairs(mrf.space_time(xy, t, speed))
+    smoothed = labels.copy()
+    smoothed[index] = mrf.potts_labels(probabilities[index], first, second, clustering.smoothness)
+    return smoothed
 
 
 def _full_probabilities(p: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -1,0 +1,124 @@
+"""The Potts labelling: exact for two labels, never worse than the likeliest labels, and
+what it is for (an isolated weak label outvoted, a confident one kept)."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import optimizers
+from spatialseg.grid import VoxelGrid
+from spatialseg.metrics import segmentation_metrics
+from spatialseg.mrf import neighbour_pairs, potts_labels, space_time
+from spatialseg.points import Prepared
+from spatialseg.recording import Camera
+from spatialseg.scenes import load_scene
+from spatialseg.settings import ClusteringSettings, settings_from
+from spatialseg.window import image_speed, segment_window, smoothed_labels
+from tests.test_pipeline import _config
+
+
+def _energy(p: np.ndarray, labels: np.ndarray, first, second, weight: float) -> float:
+    unary = -np.log(np.maximum(p[np.arange(len(p)), labels], 1e-4)).sum()
+    return float(unary + weight * np.sum(labels[first] != labels[second]))
+
+
+def _brute_force(p: np.ndarray, first, second, weight: float) -> float:
+    return min(
+        _energy(p, np.array(choice), first, second, weight)
+        for choice in itertools.product(range(p.shape[1]), repeat=len(p))
+    )
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_two_labels_reach_the_minimum_and_more_stay_within_twice_it(seed):
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(0, 3, (9, 3))
+    first, second = neighbour_pairs(points, k=3)
+    for k in (2, 3):
+        p = rng.dirichlet(np.ones(k), size=9)
+        labels = potts_labels(p, first, second, 0.8)
+        found = _energy(p, labels, first, second, 0.8)
+        best = _brute_force(p, first, second, 0.8)
+        assert found <= _energy(p, p.argmax(axis=1), first, second, 0.8) + 1e-9
+        if k == 2:
+            assert found == pytest.approx(best)
+        else:
+            assert found <= 2 * best + 1e-9
+
+
+def test_an_isolated_weak_label_is_outvoted_and_a_confident_one_kept():
+    xy = np.array([(x, y) for x in range(10) for y in range(10)], dtype=float)
+    t = np.zeros(len(xy))
+    p = np.tile([0.9, 0.1], (len(xy), 1))
+    p[45] = [0.4, 0.6]  # mislabelled, weakly
+    p[54] = [0.001, 0.999]  # a confident event of the other cluster
+    first, second = neighbour_pairs(space_time(xy, t, 1.0))
+    labels = potts_labels(p, first, second, 0.3)
+    assert p.argmax(axis=1)[45] == 1 and labels[45] == 0
+    assert labels[54] == 1 and np.all(np.delete(labels, 54) == 0)
+    assert np.array_equal(potts_labels(p, first, second, 0.0), p.argmax(axis=1))
+
+
+def test_pairs_are_symmetric_unique_and_bad_input_is_refused():
+    points = np.array([[0, 0, 0], [0, 0, 0], [1, 0, 0], [5, 5, 5]], dtype=float)
+    first, second = neighbour_pairs(points, k=2)
+    assert np.all(first < second) and len(set(zip(first, second, strict=True))) == len(first)
+    assert len(neighbour_pairs(points[:1])[0]) == 0
+    with pytest.raises(ValueError, match="finite"):
+        potts_labels(np.array([[np.nan, 1.0]]), first[:0], second[:0], 1.0)
+    with pytest.raises(ValueError, match=">= 0"):
+        potts_labels(np.ones((2, 2)) / 2, first[:0], second[:0], -1.0)
+
+
+@pytest.fixture(scope="module")
+def interior_window():
+    """An interior window of 15,000 events (no context), its settings and its segmentation
+    without smoothing."""
+    cfg = _config("window.events=15000", "window.context=0", "clustering.smoothness=0")
+    rec = load_scene(dict(cfg["scene"]), seed=0, window_events=15000)
+    _, window = next(rec.windows())
+    settings = settings_from(cfg)
+    res = segment_window(window, settings, optimizers.create("ssa_ga"), seed=0)
+    return window, settings.clustering, res
+
+
+def test_a_weakly_mislabelled_event_of_a_segmented_window_takes_its_neighbours_label(
+    interior_window,
+):
+    window, clustering, res = interior_window
+    smoothing = replace(clustering, smoothness=ClusteringSettings().smoothness)  # the default
+    p = res.probabilities.copy()
+    labels = res.labels.copy()
+    confident = np.flatnonzero((labels == 0) & (p[:, 0] > 0.9))
+    event = int(confident[len(confident) // 2])
+    p[event] = [0.4, 0.6]  # now weakly the other cluster's
+    labels[event] = 1
+    unassigned = labels < 0
+    labels[np.flatnonzero(~unassigned)[:5]] = -1  # held out by min_probability
+    unassigned = labels < 0
+    args = (window, res.prepared, res.clustering, p, labels)
+    smoothed = smoothed_labels(*args, smoothing)
+    assert smoothed[event] == 0
+    assert np.array_equal(smoothed < 0, unassigned)
+    assert np.array_equal(smoothed_labels(*args, replace(clustering, smoothness=1e-6)), labels)
+    truth = window.ground_truth.labels
+    assert (
+        segmentation_metrics(smoothed, truth)["accuracy"]
+        >= (segmentation_metrics(labels, truth)["accuracy"])
+    )
+
+
+def test_the_image_speed_is_the_flow_of_the_likeliest_motion():
+    camera = Camera(fx=200.0, fy=100.0, cx=0.0, cy=0.0, width=10, height=10)
+    grid = VoxelGrid(origin=np.zeros(3), voxel_size=np.ones(3), shape=(2, 2, 2))
+    points = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0]])
+    spatial = Prepared(points, np.zeros(2), np.ones(2, dtype=bool), grid, 3, "m/s")
+    p = np.array([[1.0, 0.0], [0.0, 1.0]])
+    thetas = np.array([[0.5, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 50 px/s; 200 * 1 / 4 = 50 px/s
+    assert image_speed(spatial, thetas, p, camera) == pytest.approx(50.0)
+    planar = replace(spatial, dim=2, units="px/s")
+    assert image_speed(planar, np.array([[3.0, 4.0], [0.0, 1.0]]), p[[0, 0]], camera) == 5.0
