@@ -95,17 +95,17 @@ def test_simulate_write_read_round_trip(recording: Recording, tmp_path: Path) ->
 def test_segment_labels_probabilities_velocities(
     recording: Recording, segmentation: spatialseg.Segmentation
 ) -> None:
-    """One label per event, each the likeliest object of its probabilities row, ids one
-    object across windows (accuracy with one matching over the recording > 0.8), and each
-    object's whole-run velocity as the summary's."""
+    """One label per event, nearly always the likeliest object of its probabilities row (the
+    label smoothing gives some events their neighbours' object), ids one object across
+    windows (accuracy with one matching over the recording > 0.8), and each object's
+    whole-run velocity as the summary's."""
     seg, n = segmentation, len(recording.events)
     assert seg.labels.shape == (n,) and seg.probabilities.shape == (n, seg.n_objects)
     assert seg.n_objects == 2 and len(seg.windows) == len(seg.window_indices) == 2
     rows = np.flatnonzero(seg.labels >= 0)
     assert len(rows) > 0.9 * n
-    np.testing.assert_array_equal(
-        seg.probabilities[rows, seg.labels[rows]], seg.probabilities[rows].max(axis=1)
-    )
+    likeliest = seg.probabilities[rows, seg.labels[rows]] == seg.probabilities[rows].max(axis=1)
+    assert 0.95 < likeliest.mean() < 1.0  # 137 of 6,000 smoothed at the default
     assert recording.ground_truth is not None
     scores = recording_metrics(seg.labels, recording.ground_truth.labels, seg.window_indices)
     assert scores["accuracy"] > 0.8
