@@ -33,6 +33,7 @@ from spatialseg.clustering import (
     update_memberships,
 )
 from spatialseg.depth import make_depth_source
+from spatialseg.grid import project_jacobian
 from spatialseg.points import (
     ModelEvaluator,
     Prepared,
@@ -571,17 +572,16 @@ def nearest_memberships(
 
 def image_speed(prepared: Prepared, thetas: np.ndarray, p: np.ndarray, camera: Camera) -> float:
     """The fitted events' median image speed (pixels per second) under their likeliest
-    motion: a planar velocity is one; a spatial one moves a point (X, Y, Z) across the image
-    at ``f (v_xy Z - XY v_z) / Z^2``."""
+    motion: a planar velocity is one; a spatial one moves its point across the image by the
+    pinhole's Jacobian (:func:`~spatialseg.grid.project_jacobian`)."""
     if not len(p):
         return 0.0
     own = spatial_velocities(thetas)[p.argmax(axis=1)]
     if prepared.dim == 2:
         return float(np.median(np.linalg.norm(own[:, :2], axis=1)))
-    x, y, z = prepared.points.T
-    u = camera.fx * (own[:, 0] * z - x * own[:, 2]) / z**2
-    v = camera.fy * (own[:, 1] * z - y * own[:, 2]) / z**2
-    return float(np.median(np.hypot(u, v)))
+    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+    flow = np.einsum("nij,nj->ni", project_jacobian(prepared.points, intrinsics)[:, :2], own)
+    return float(np.median(np.linalg.norm(flow, axis=1)))
 
 
 def smoothed_labels(

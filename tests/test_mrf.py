@@ -12,7 +12,7 @@ import pytest
 import optimizers
 from spatialseg.grid import VoxelGrid
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.mrf import neighbour_pairs, potts_labels, space_time
+from spatialseg.mrf import FLOOR, neighbour_pairs, potts_labels, space_time
 from spatialseg.points import Prepared
 from spatialseg.recording import Camera
 from spatialseg.scenes import load_scene
@@ -22,7 +22,7 @@ from tests.test_pipeline import _config
 
 
 def _energy(p: np.ndarray, labels: np.ndarray, first, second, weight: float) -> float:
-    unary = -np.log(np.maximum(p[np.arange(len(p)), labels], 1e-4)).sum()
+    unary = -np.log(np.maximum(p[np.arange(len(p)), labels], FLOOR)).sum()
     return float(unary + weight * np.sum(labels[first] != labels[second]))
 
 
