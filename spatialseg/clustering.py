@@ -157,26 +157,6 @@ def update_memberships(responses: np.ndarray) -> np.ndarray:
     return p
 
 
-def mean_field(
-    responses: np.ndarray,
-    p: np.ndarray,
-    pairs: tuple[np.ndarray, np.ndarray],
-    coupling: float,
-    sweeps: int = 2,
-) -> np.ndarray:
-    """Mean-field Potts memberships: each event's responses times exp(coupling x its
-    neighbours' memberships), from ``p``, ``sweeps`` times."""
-    first, second = pairs
-    n, k = p.shape
-    for _ in range(sweeps):
-        field = np.empty_like(p)
-        for j in range(k):
-            field[:, j] = np.bincount(first, p[second, j], n) + np.bincount(second, p[first, j], n)
-        field = coupling * (field - field.max(axis=1, keepdims=True))
-        p = update_memberships(responses * np.exp(field))
-    return p
-
-
 def initial_memberships(
     points: np.ndarray,
     scale: np.ndarray,
@@ -320,8 +300,6 @@ def iterative_clustering(
     p_step_stride: int = 1,
     on_iteration: Callable[[IterationRecord], None] | None = None,
     step: StepStage | None = None,
-    pairs: tuple[np.ndarray, np.ndarray] | None = None,
-    coupling: float = 0.0,
 ) -> ClusteringResult:
     """Run Algorithm 1 from velocities ``init_thetas`` (K x dim) and memberships ``init_p``.
 
@@ -360,8 +338,6 @@ def iterative_clustering(
             evals += n
         responses, values = cluster_responses(evaluator, thetas, p, p_step_sigma, p_step_stride)
         p = update_memberships(responses)
-        if pairs is not None and coupling > 0:
-            p = mean_field(responses, p, pairs, coupling)
         previous, labels = labels, p.argmax(axis=1)
         changed = float(np.mean(labels != previous)) if n_events else 0.0
         elapsed = time.perf_counter() - start

@@ -316,8 +316,6 @@ class ClusteringSettings:
     #: log-membership, of each pair of space-time neighbours labelled apart (chosen on the
     #: dev split among 0.3, 1 and 3: docs/results.md); 0: each event its likeliest cluster.
     smoothness: float = 3.0
-    #: Mean-field Potts coupling in the loop's P-step (prototype); 0: off.
-    mean_field: float = 0.0
     refit: RefitSettings = field(default_factory=RefitSettings)
 
     def __post_init__(self) -> None:
@@ -339,7 +337,6 @@ class ClusteringSettings:
         integer_setting(self.max_clusters, "clustering.max_clusters", 1)
         _in_range(self.min_probability, "clustering.min_probability", 0, 1, open_low=False)
         number_setting(self.smoothness, "clustering.smoothness", 0)
-        number_setting(self.mean_field, "clustering.mean_field", 0)
         for sigma, stride, prefix in (
             (self.p_step_sigma, self.p_step_stride, "clustering.p_step_"),
             (self.p_step_alone.sigma, self.p_step_alone.stride, "clustering.p_step_alone."),

@@ -175,14 +175,7 @@ def segment_window(
             xy=xy,
             seed_motion=lambda group, group_seed: seed_motion(group, group_seed, box),
             auto=wanted is None,
-            pairs_for=pairs_for,
         )
-
-    def pairs_for(thetas: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        t = prepared.t
-        span = max(float(t.max() - t.min()), 1e-9)
-        speed = max(image_speed(prepared, thetas, p, window.camera), 1 / span)
-        return mrf.neighbour_pairs(mrf.space_time(xy, t, speed))
 
     timings["init"] = timings["cluster"] = 0.0
     for method in starts:
@@ -390,7 +383,6 @@ def _cluster_from(
     xy: np.ndarray,
     seed_motion: Any,
     auto: bool = False,
-    pairs_for: Any = None,
 ) -> ClusteringResult:
     """Algorithm 1 from one start: its memberships, then the configured loop (``alone``: the
     window has no neighbouring windows, :func:`~spatialseg.points.p_step_settings`); with
@@ -409,11 +401,6 @@ def _cluster_from(
     )
     evaluator, step = objectives
     rules = _rules(clustering)
-    pairs = (
-        pairs_for(init.thetas[:, : prepared.dim], init_p)
-        if clustering.mean_field > 0 and pairs_for is not None
-        else None
-    )
 
     def run(thetas: np.ndarray, p: np.ndarray, run_seed: int) -> ClusteringResult:
         return iterative_clustering(
@@ -429,8 +416,6 @@ def _cluster_from(
             seed=run_seed,
             on_iteration=on_iteration,
             step=step,
-            pairs=pairs,
-            coupling=clustering.mean_field,
         )
 
     result = run(init.thetas[:, : prepared.dim], init_p, seed)
