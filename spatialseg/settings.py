@@ -314,9 +314,8 @@ class ClusteringSettings:
     min_probability: float = 0.0
     #: The labels' Potts smoothness (spatialseg.mrf): the cost, in units of an event's
     #: log-membership, of each pair of space-time neighbours labelled apart (chosen on the
-    #: dev split among 0.3, 1, 3, 6 and 10: docs/results.md); 0: each event its likeliest
-    #: cluster.
-    smoothness: float = 10.0
+    #: dev split among 0.3, 1 and 3: docs/results.md); 0: each event its likeliest cluster.
+    smoothness: float = 3.0
     refit: RefitSettings = field(default_factory=RefitSettings)
 
     def __post_init__(self) -> None:
