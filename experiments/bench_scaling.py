@@ -130,7 +130,7 @@ def build_grid(points: np.ndarray, kind: str) -> VoxelGrid:
     """The grid ``points.prepare`` builds for these points with the default config."""
     cam = camera()
     size = voxel_size(points, cam, xy_scale=2.0, z_bins=16, coordinates=kind)
-    projection = np.array([cam.fx, cam.fy, cam.cx, cam.cy]) if kind == "image" else None
+    projection = cam.intrinsics if kind == "image" else None
     return grid_around(points, size, 0.1, 20_000_000, projection)
 
 

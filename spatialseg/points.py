@@ -156,9 +156,7 @@ def volume_grid(
         z_bins=vol.z_bins,
         coordinates=coordinates,
     )
-    projection = None
-    if coordinates == "image":
-        projection = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+    projection = camera.intrinsics if coordinates == "image" else None
     return grid_around(points, size, vol.margin, vol.max_voxels, projection)
 
 

@@ -73,6 +73,12 @@ class Camera:
         if int(self.width) <= 0 or int(self.height) <= 0:
             raise ValueError(f"camera size {self.width}x{self.height} must be positive")
 
+    @property
+    def intrinsics(self) -> np.ndarray:
+        """``[fx, fy, cx, cy]``, as :func:`spatialseg.grid.project_jacobian` and the image
+        grid's projection take them."""
+        return np.array([self.fx, self.fy, self.cx, self.cy])
+
 
 @dataclass(frozen=True, eq=False)
 class DepthMap:

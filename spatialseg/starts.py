@@ -186,9 +186,7 @@ def _image_flow_start(given: StartInput) -> motion_init.InitResult:
         return _time_surface_start(given)
     events = window.events.select(prepared.valid)
     planar = planar_points(replace(window, events=events, ground_truth=None), 1.0)
-    cam = window.camera
-    intrinsics = np.array([cam.fx, cam.fy, cam.cx, cam.cy])
-    lift = project_jacobian(prepared.points, intrinsics)[:, :2]
+    lift = project_jacobian(prepared.points, window.camera.intrinsics)[:, :2]
     return motion_init.initial_motions(
         planar.points,
         planar.t,

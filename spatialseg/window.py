@@ -579,8 +579,8 @@ def image_speed(prepared: Prepared, thetas: np.ndarray, p: np.ndarray, camera: C
     own = spatial_velocities(thetas)[p.argmax(axis=1)]
     if prepared.dim == 2:
         return float(np.median(np.linalg.norm(own[:, :2], axis=1)))
-    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
-    flow = np.einsum("nij,nj->ni", project_jacobian(prepared.points, intrinsics)[:, :2], own)
+    jacobian = project_jacobian(prepared.points, camera.intrinsics)[:, :2]
+    flow = np.einsum("nij,nj->ni", jacobian, own)
     return float(np.median(np.linalg.norm(flow, axis=1)))
 
 
