@@ -33,7 +33,6 @@ from spatialseg.recording import Recording
 from spatialseg.settings import ClusteringSettings, InitSettings, Settings
 
 __all__ = [
-    "PLANAR",
     "PREVIOUS",
     "Start",
     "StartInput",
@@ -52,10 +51,6 @@ log = logging.getLogger("spatialseg.pipeline")
 #: The start ``init.auto`` may add: the preceding window's final velocities (windows after
 #: a recording's first; :func:`spatialseg.pipeline.segment_recording`).
 PREVIOUS = "previous"
-
-#: The start from the planar model's segmentation of the window; the planar model itself
-#: does not run it (:func:`spatialseg.window.segment_window`).
-PLANAR = "planar"
 
 
 @dataclass(frozen=True, eq=False)
@@ -222,40 +217,6 @@ def _time_surface_start(given: StartInput) -> motion_init.InitResult:
         dim=prepared.dim,
         max_speed=float(given.bounds[:, 1].max()),
         **_flow_settings(given.settings.init),
-    )
-
-
-@register_start(PLANAR)
-def _planar_start(given: StartInput) -> motion_init.InitResult:
-    """The window's fitted events segmented by the planar model (image-plane velocities,
-    from the other starts of ``init.auto``), each cluster's velocity lifted to 3-D over its
-    events (:func:`~spatialseg.motion_init.lift_velocities`); for the planar model itself,
-    the ``image_flow`` start.
-
-    Decision: two objects moving apart are also one motion towards the camera, and a 3-D
-    loop from flows or tiles can end there; the image plane has no such motion, so its
-    partition starts the 3-D loop near the separate objects, and the total contrast judges
-    it against the other starts (docs/method.md, "The planar start")."""
-    from spatialseg.window import segment_window  # at call time: window imports this module
-
-    window, prepared, settings = given.window, given.prepared, given.settings
-    if prepared.dim == 2:
-        return _image_flow_start(given)
-    fitted = replace(window, events=window.events.select(prepared.valid), ground_truth=None)
-    inner = tuple(s for s in settings.init.auto if s not in (PLANAR, PREVIOUS)) or ("image_flow",)
-    planar = replace(
-        settings,
-        n_clusters=given.k,
-        model=replace(settings.model, name="planar", xy_scale=None),
-        init=replace(settings.init, method="auto", auto=inner),
-    )
-    result = segment_window(fitted, planar, given.optimizer, seed=given.seed)
-    lift = project_jacobian(prepared.points, window.camera.intrinsics)[:, :2]
-    flows = result.clustering.thetas[:, :2]
-    thetas = motion_init.lift_velocities(lift, result.labels, flows)
-    thetas = np.clip(thetas, given.bounds[:, 0], given.bounds[:, 1])
-    return motion_init.InitResult(
-        thetas, np.full((len(result.labels), 3), np.nan), 0, False, result.labels
     )
 
 

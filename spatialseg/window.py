@@ -50,7 +50,6 @@ from spatialseg.points import (
 from spatialseg.recording import Camera, Recording
 from spatialseg.settings import ClusteringSettings, Settings, settings_from
 from spatialseg.starts import (
-    PLANAR,
     PREVIOUS,
     init_candidates,
     initialise,
@@ -130,12 +129,7 @@ def segment_window(
     in a DEBUG line per iteration and per start (None: no such lines)."""
     wanted = settings.cluster_count
     k = wanted or (1 if previous is None else len(previous))
-    starts = [
-        s
-        for s in init_candidates(settings.init)
-        if (s != PREVIOUS or previous is not None)
-        and (s != PLANAR or settings.model.name != "planar")
-    ]
+    starts = [s for s in init_candidates(settings.init) if s != PREVIOUS or previous is not None]
     if wanted is None and previous is not None:  # auto: the window before's motions, grown
         starts = [PREVIOUS]
     alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
