@@ -19,6 +19,7 @@ tracking, the command that opens the store.
 from __future__ import annotations
 
 import contextlib
+import difflib
 import logging
 import os
 import signal
@@ -33,9 +34,15 @@ import hydra
 import numpy as np
 from hydra._internal.utils import run_and_report
 from hydra.core.hydra_config import HydraConfig
-from hydra.errors import MissingConfigException, SearchPathException
+from hydra.errors import (
+    ConfigCompositionException,
+    MissingConfigException,
+    OverrideParseException,
+    SearchPathException,
+)
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from spatialseg.checks import boolean_setting, plural
 from spatialseg.config import build_optimizer, conf_dir, validate_run
@@ -386,14 +393,39 @@ def _missing_config_line(exc: MissingConfigException | SearchPathException) -> s
     )
 
 
+def _override_line(exc: ConfigCompositionException | OverrideParseException) -> str:
+    """One line for an override Hydra could not apply: an unknown key (``clustering.max_iter=3``)
+    names the closest known key, or the keys its section has; a malformed one says so."""
+    if isinstance(exc, OverrideParseException):
+        grammar = "https://hydra.cc/docs/advanced/override_grammar/basic/"
+        return (
+            f"cannot parse an override: {str(exc).strip().splitlines()[0]} (the grammar: {grammar})"
+        )
+    cause = exc.__cause__
+    full_key = getattr(cause, "full_key", None)
+    parent = getattr(cause, "parent_node", None)
+    if not isinstance(cause, OmegaConfBaseException) or not full_key:
+        return str(exc).strip().splitlines()[0]
+    if not isinstance(parent, DictConfig):
+        return f"unknown config key '{full_key}' (--cfg job lists every setting)"
+    section, _, key = str(full_key).rpartition(".")
+    known = [str(k) for k in parent if not str(k).startswith("_") and k != "hydra"]
+    close = difflib.get_close_matches(key, known, n=1)
+    if close:
+        hint = f"did you mean '{section + '.' if section else ''}{close[0]}'?"
+    else:
+        hint = f"{repr(section) if section else 'the config'} has: {', '.join(known)}"
+    return f"unknown config key '{full_key}'; {hint} (--cfg job lists every setting)"
+
+
 def _reraise(exc: Exception) -> None:
     """Raise ``exc`` again (for Hydra's own report of it)."""
     raise exc
 
 
 def _run_reporting_missing_configs(app: Callable[[], None]) -> None:
-    """Run the Hydra ``app``; an unknown config option or ``--config-dir`` ends in one
-    ``error:`` line and exit status 2.
+    """Run the Hydra ``app``; an unknown config option, key or ``--config-dir``, or a
+    malformed override, ends in one ``error:`` line and exit status 2.
 
     Hydra prints these in many lines and exits 1; with HYDRA_FULL_ERROR set it raises them,
     so they are caught here and any other error goes back to Hydra's own report. A user's
@@ -407,6 +439,9 @@ def _run_reporting_missing_configs(app: Callable[[], None]) -> None:
         app()
     except (MissingConfigException, SearchPathException) as exc:
         print(f"error: {_missing_config_line(exc)}", file=sys.stderr)
+        sys.exit(2)
+    except (ConfigCompositionException, OverrideParseException) as exc:
+        print(f"error: {_override_line(exc)}", file=sys.stderr)
         sys.exit(2)
     except Exception as exc:
         del os.environ["HYDRA_FULL_ERROR"]

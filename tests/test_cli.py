@@ -26,6 +26,13 @@ def test_help_works_outside_the_checkout(tmp_path):
             ("+scene=interior", "+clustering.tolerance=1"),
             "unknown config key 'clustering.tolerance'",
         ),
+        (
+            ("+scene=interior", "clustering.max_iteration=3"),
+            "unknown config key 'clustering.max_iteration'; did you mean "
+            "'clustering.max_iterations'?",
+        ),
+        (("+scene=interior", "output.figures=false"), "'output' has: plots, progress, h5"),
+        (("+scene=interior", "clustering.tol=[1"), "cannot parse an override"),
         (("+scene=recording",), "scene=recording needs a path"),
         (("+scene=interior", "init.tiles.refit=nope"), "init.tiles.refit: unknown optimizer"),
     ],
