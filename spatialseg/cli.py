@@ -381,9 +381,14 @@ def launch(task: Callable[[DictConfig], object], config_name: str) -> None:
     _exit_if_jobs_failed()
 
 
+def _first_line(exc: Exception) -> str:
+    """The first line of a Hydra error's message (the rest is its advice for Hydra users)."""
+    return str(exc).strip().splitlines()[0]
+
+
 def _missing_config_line(exc: MissingConfigException | SearchPathException) -> str:
     """Hydra's first line of a missing-config error, with the group's options and the fix."""
-    line = str(exc).strip().splitlines()[0]
+    line = _first_line(exc)
     if not isinstance(exc, MissingConfigException) or not exc.options or not exc.missing_cfg_file:
         return line
     group = exc.missing_cfg_file.rpartition("/")[0]
@@ -398,14 +403,12 @@ def _override_line(exc: ConfigCompositionException | OverrideParseException) -> 
     names the closest known key, or the keys its section has; a malformed one says so."""
     if isinstance(exc, OverrideParseException):
         grammar = "https://hydra.cc/docs/advanced/override_grammar/basic/"
-        return (
-            f"cannot parse an override: {str(exc).strip().splitlines()[0]} (the grammar: {grammar})"
-        )
+        return f"cannot parse an override: {_first_line(exc)} (the grammar: {grammar})"
     cause = exc.__cause__
     full_key = getattr(cause, "full_key", None)
     parent = getattr(cause, "parent_node", None)
     if not isinstance(cause, OmegaConfBaseException) or not full_key:
-        return str(exc).strip().splitlines()[0]
+        return _first_line(exc)
     if not isinstance(parent, DictConfig):
         return f"unknown config key '{full_key}' (--cfg job lists every setting)"
     section, _, key = str(full_key).rpartition(".")
