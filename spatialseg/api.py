@@ -30,7 +30,7 @@ import numpy as np
 from sklearn.base import BaseEstimator
 
 from spatialseg import pipeline
-from spatialseg.checks import integer_setting, optional_positive
+from spatialseg.checks import integer_setting, optional_positive, unknown_key
 from spatialseg.config import (
     build_optimizer,
     check_option,
@@ -188,8 +188,8 @@ def _assign(tree: dict[str, Any], key: str, value: Any, *, known_only: bool) -> 
             raise ValueError(f"{where} is a single value, not a section; give {where}=VALUE")
         if part not in node:
             if known_only:
-                valid = ", ".join(_public(node))
-                raise ValueError(f"unknown setting {key!r}; valid keys in {where}: {valid}")
+                unknown = ".".join(parts[: depth + 1])
+                raise ValueError(unknown_key(unknown, _public(node), "setting"))
             node[part] = {}
         if depth < len(parts) - 1:
             node = node[part]
@@ -255,10 +255,8 @@ def _configure(
     sections = {k: v for k, v in cfg.items() if k not in _NOT_SETTINGS}
     for key, value in values.items():
         if key.partition(".")[0] not in sections:
-            valid = ", ".join(sorted([*sections, _PRESET]))
-            raise ValueError(
-                f"unknown setting {key!r}; valid settings: {valid} ({_SETTINGS_FORMS})"
-            )
+            line = unknown_key(key.partition(".")[0], [*sections, _PRESET], "setting")
+            raise ValueError(f"{line} ({_SETTINGS_FORMS})")
         _assign(sections, key, value, known_only=True)
     cfg.update(sections, n_clusters=n_clusters, seed=seed)
     checked = check_config(cfg)

@@ -3,6 +3,8 @@ one plural wording the log lines share."""
 
 from __future__ import annotations
 
+import difflib
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -15,6 +17,7 @@ __all__ = [
     "number_setting",
     "optional_positive",
     "plural",
+    "unknown_key",
 ]
 
 
@@ -77,6 +80,19 @@ def number_setting(
         note = f" ({hint})" if hint else ""
         raise ValueError(f"{key} must be {expected}{note}, got {value!r}")
     return float(value)
+
+
+def unknown_key(key: str, known: Iterable[str], kind: str = "config key") -> str:
+    """One line for a dotted ``key`` whose last part is not among ``known`` (its section's
+    keys), worded alike by every reader: the closest known key if one is close (a typo),
+    else all of them."""
+    section, dot, leaf = key.rpartition(".")
+    names = sorted(str(k) for k in known)
+    close = difflib.get_close_matches(leaf, names, n=1)
+    if close:
+        return f"unknown {kind} '{key}'; did you mean '{section}{dot}{close[0]}'?"
+    place = f"'{section}'" if section else "the top level"
+    return f"unknown {kind} '{key}'; {place} has: {', '.join(names)}"
 
 
 def plural(n: int, word: str) -> str:

@@ -19,7 +19,6 @@ tracking, the command that opens the store.
 from __future__ import annotations
 
 import contextlib
-import difflib
 import logging
 import os
 import signal
@@ -44,7 +43,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from spatialseg.checks import boolean_setting, plural
+from spatialseg.checks import boolean_setting, plural, unknown_key
 from spatialseg.config import build_optimizer, conf_dir, validate_run
 from spatialseg.interrupts import interruption, raise_pending, stop_on_signals
 from spatialseg.progress import progress_bar
@@ -411,14 +410,8 @@ def _override_line(exc: ConfigCompositionException | OverrideParseException) -> 
         return _first_line(exc)
     if not isinstance(parent, DictConfig):
         return f"unknown config key '{full_key}' (--cfg job lists every setting)"
-    section, _, key = str(full_key).rpartition(".")
     known = [str(k) for k in parent if not str(k).startswith("_") and k != "hydra"]
-    close = difflib.get_close_matches(key, known, n=1)
-    if close:
-        hint = f"did you mean '{section + '.' if section else ''}{close[0]}'?"
-    else:
-        hint = f"{repr(section) if section else 'the config'} has: {', '.join(known)}"
-    return f"unknown config key '{full_key}'; {hint} (--cfg job lists every setting)"
+    return f"{unknown_key(str(full_key), known)} (--cfg job lists every setting)"
 
 
 def _reraise(exc: Exception) -> None:

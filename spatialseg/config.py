@@ -33,6 +33,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 import optimizers
 from optimizers import preset_hyperparameters
+from spatialseg.checks import unknown_key
 from spatialseg.settings import SECTIONS, default_tree
 
 __all__ = [
@@ -209,8 +210,7 @@ def _check_keys(composed: Any, reference: Any, path: str) -> None:
     for key in composed:
         where = f"{path}.{key}" if path else str(key)
         if key not in reference:
-            valid = ", ".join(sorted(str(k) for k in reference))
-            raise ConfigError(f"unknown config key '{where}'; valid keys here: {valid}")
+            raise ConfigError(unknown_key(where, (str(k) for k in reference)))
         if not isinstance(composed[key], ListConfig):
             _check_keys(composed[key], reference[key], where)
 
@@ -242,11 +242,7 @@ def validate_config(
         reference[key] = {}
     for key in cfg:
         if key not in reference:
-            raise ConfigError(
-                f"unknown config key '{key}'; valid top-level keys: "
-                f"{', '.join(sorted(k for k in reference if k not in _HYDRA_KEYS))}. "
-                f"Did you mean one of the groups ({', '.join(groups)}) with + for scene?"
-            )
+            raise ConfigError(unknown_key(str(key), (k for k in reference if k not in _HYDRA_KEYS)))
     if "scene" not in cfg:
         raise ConfigError(
             "no scene selected; add +scene=NAME with NAME one of: "

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spatialseg.checks import integer_setting, is_integer, optional_positive
+from spatialseg.checks import integer_setting, is_integer, optional_positive, unknown_key
 from spatialseg.recording import check_window_context
 
 
@@ -54,3 +54,25 @@ def test_integer_setting_names_the_key_its_range_and_the_hint():
         )
     with pytest.raises(ValueError, match=r"must be an integer >= 1 or null, got 0"):
         integer_setting(0, "clustering.step_events", 1, optional=True)
+
+
+@pytest.mark.parametrize(
+    ("key", "known", "expected"),
+    [
+        ("scnee", ["model", "scene"], "unknown config key 'scnee'; did you mean 'scene'?"),
+        (
+            "clustering.max_iteration",
+            ["tol", "max_iterations"],
+            "unknown config key 'clustering.max_iteration'; did you mean "
+            "'clustering.max_iterations'?",
+        ),
+        (
+            "output.figures",
+            ["plots", "h5", "progress"],
+            "unknown config key 'output.figures'; 'output' has: h5, plots, progress",
+        ),
+        ("zzz", ["model", "scene"], "unknown config key 'zzz'; the top level has: model, scene"),
+    ],
+)
+def test_unknown_key_names_the_closest_key_or_the_section_keys(key, known, expected):
+    assert unknown_key(key, known) == expected

@@ -31,7 +31,7 @@ def test_help_works_outside_the_checkout(tmp_path):
             "unknown config key 'clustering.max_iteration'; did you mean "
             "'clustering.max_iterations'?",
         ),
-        (("+scene=interior", "output.figures=false"), "'output' has: plots, progress, h5"),
+        (("+scene=interior", "output.figures=false"), "'output' has: h5, plots, progress"),
         (("+scene=interior", "clustering.tol=[1"), "cannot parse an override"),
         (("+scene=recording",), "scene=recording needs a path"),
         (("+scene=interior", "init.tiles.refit=nope"), "init.tiles.refit: unknown optimizer"),

@@ -144,7 +144,7 @@ def test_a_user_scene_runs_from_its_own_config_dir(tmp_path, how):
         ),
         (
             ("--config-dir", "{user}", "+scene=mycam", "+scene.camra=1"),
-            ("unknown config key 'scene.camra'; valid keys here: background, camera,",),
+            ("unknown config key 'scene.camra'; did you mean 'scene.camera'?",),
         ),
         (
             ("--config-dir", "{user}/nodir", "+scene=mycam"),
