@@ -8,6 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 import optimizers
 from spatialseg.grid import VoxelGrid
@@ -61,6 +62,18 @@ def test_an_isolated_weak_label_is_outvoted_and_a_confident_one_kept():
     assert p.argmax(axis=1)[45] == 1 and labels[45] == 0
     assert labels[54] == 1 and np.all(np.delete(labels, 54) == 0)
     assert np.array_equal(potts_labels(p, first, second, 0.0), p.argmax(axis=1))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_pairs_are_each_points_nearest_others_once_in_order(seed):
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(0, 6, (400, 3))
+    points[300:] = points[:100]  # duplicate points, ties between them
+    _, nearest = cKDTree(points, compact_nodes=False, balanced_tree=False).query(points, k=5)
+    directed = {(i, int(j)) for i, row in enumerate(nearest[:, 1:]) for j in row if i != j}
+    expected = sorted({(min(i, j), max(i, j)) for i, j in directed})
+    first, second = neighbour_pairs(points, k=4)
+    assert list(zip(first.tolist(), second.tolist(), strict=True)) == expected
 
 
 def test_pairs_are_symmetric_unique_and_bad_input_is_refused():
