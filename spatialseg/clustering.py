@@ -171,8 +171,9 @@ def initial_memberships(
     Decision: with uniform memberships every cluster sees the same objective in the first
     theta-step, so a global optimiser sends all of them to the same (strongest) motion and
     the P-step can never separate them. ``flow`` breaks the symmetry with the initial flow
-    clustering: each event takes the label of its nearest (in voxels) event with a valid
-    flow, held with probability ``confidence``, the rest shared by the other clusters.
+    clustering: each event takes its own label, or without one that of its nearest (in
+    voxels) event with a valid flow, held with probability ``confidence``, the rest shared
+    by the other clusters.
     """
     m = points.shape[0]
     uniform = np.full((m, k), 1.0 / k)
@@ -187,8 +188,10 @@ def initial_memberships(
     known = labels >= 0
     if not known.any():
         return uniform
-    tree = cKDTree(points[known] / scale)
-    nearest = labels[known][tree.query(points / scale)[1]]
+    nearest = labels.copy()
+    if not known.all():
+        tree = cKDTree(points[known] / scale)
+        nearest[~known] = labels[known][tree.query(points[~known] / scale)[1]]
     p = np.full((m, k), (1.0 - confidence) / (k - 1))
     p[np.arange(m), nearest] = confidence
     return p

@@ -38,6 +38,10 @@ def test_initial_memberships_flow_and_uniform():
     labels = np.array([0, -1, 1, -1])
     p = initial_memberships(points, np.ones(3), labels, 2, mode="flow", confidence=0.9)
     assert np.allclose(p, [[0.9, 0.1], [0.9, 0.1], [0.1, 0.9], [0.1, 0.9]])
+    twins = initial_memberships(
+        points[[0, 0]], np.ones(3), np.array([0, 1]), 2, mode="flow", confidence=0.9
+    )
+    assert np.allclose(twins, [[0.9, 0.1], [0.1, 0.9]])  # a labelled event keeps its own label
     u = initial_memberships(points, np.ones(3), labels, 2, mode="uniform", confidence=0.9)
     assert np.allclose(u, 0.5)
     with pytest.raises(ValueError, match="init_memberships must be"):
