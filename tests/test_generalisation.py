@@ -35,18 +35,36 @@ def test_fixed_modifiers_are_checked():
 
 def test_a_scene_read_back_from_disk_is_scored_per_model(tmp_path):
     models = [f"spatial:{FAST}", f"planar:{FAST}"]
-    rows = generalisation.run_scene(("equal_motion", 1, models, {"noise": 0.1}, tmp_path))
+    rows = generalisation.run_scene(("equal_motion", 1, models, {"noise": 0.1}, tmp_path, 1))
     assert [r["model"] for r in rows] == models
+    assert [r["optimiser_seed"] for r in rows] == [1, 1]  # the scene's own seed
     for row in rows:
         assert set(row) >= ROW_KEYS and row["modifiers"]["noise"] == 0.1
         assert 0 <= row["accuracy"] <= row["accuracy_per_window"] <= 1
         assert row["windows"] == 2 and row["n_motions"] == 2
     assert rows[0]["velocity_error"] is not None and rows[1]["velocity_error"] is None
     assert len(list(tmp_path.iterdir())) == 1  # the cached recording, reused by a rerun
-    again = generalisation.run_scene(("equal_motion", 1, models[:1], {"noise": 0.1}, tmp_path))
+    again = generalisation.run_scene(("equal_motion", 1, models[:1], {"noise": 0.1}, tmp_path, 2))
     assert again[0]["accuracy"] == rows[0]["accuracy"]
+    assert [r["optimiser_seed"] for r in again] == [1, 1_000_001]
+    assert again[1]["seed"] == 1 and again[1]["n_events"] == again[0]["n_events"]
+    assert again[1]["velocity_error"] != again[0]["velocity_error"]  # another optimiser run
     table = generalisation.table(rows + again, models)
-    assert "| equal_motion | spatial:" in table and "| 2 |" in table
+    assert "| equal_motion | spatial:" in table and "| 3 |" in table  # rows: seeds x runs
+
+
+def test_optimiser_seeds_start_at_the_scenes_own_and_never_meet_another_scenes():
+    assert generalisation.optimiser_seeds(7, 1) == [7]
+    dev = {s for scene in range(1000) for s in generalisation.optimiser_seeds(scene, 3)}
+    assert len(dev) == 3000 and not dev & set(generalisation.split_seeds("heldout", 1000))
+
+
+def test_resume_refuses_a_file_of_another_number_of_optimiser_seeds(tmp_path):
+    path = tmp_path / "rows.json"
+    path.write_text('{"split": "dev", "fixed": {}, "rows": [{"seed": 0}]}')
+    assert generalisation.resumed_rows(path, "dev", {}, 1) == [{"seed": 0}]
+    with pytest.raises(ValueError, match="another --optimiser-seeds"):
+        generalisation.resumed_rows(path, "dev", {}, 3)
 
 
 def test_motions_found_is_the_share_with_as_many_objects_as_motions():
