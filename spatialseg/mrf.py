@@ -45,9 +45,8 @@ def neighbour_pairs(points: np.ndarray, k: int = NEIGHBOURS) -> tuple[np.ndarray
     second = others.reshape(-1)
     keep = first != second  # duplicate points may return themselves
     keep[_listed_both_ways(others, first, second)] = False
-    low = np.minimum(first[keep], second[keep])
-    keys = np.sort(low * n + np.maximum(first[keep], second[keep]))
-    return np.divmod(keys, n)
+    a, b = first[keep], second[keep]
+    return np.divmod(np.sort(np.minimum(a, b) * n + np.maximum(a, b)), n)
 
 
 def _listed_both_ways(others: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
