@@ -13,13 +13,14 @@ explain it too. Measured in docs/method.md ("Initial velocities").
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
+from typing import Protocol
 
 import numpy as np
 
 from spatialseg.clustering import ClusterEvaluator, Maximizer, maximize_contrast
 
-__all__ = ["Tiles", "greedy_cover", "image_tiles", "tile_motions"]
+__all__ = ["GroupedEvaluator", "Tiles", "greedy_cover", "image_tiles", "tile_motions"]
 
 
 def image_tiles(xy: np.ndarray, size: float, min_events: int) -> tuple[np.ndarray, np.ndarray]:
@@ -38,20 +39,33 @@ def image_tiles(xy: np.ndarray, size: float, min_events: int) -> tuple[np.ndarra
     return renumber[tile], counts[dense]
 
 
+class GroupedEvaluator(Protocol):
+    """One objective over every tile's events, grouped by tile (tile number = group)."""
+
+    def group_values(self, thetas: np.ndarray) -> np.ndarray:
+        """Each tile's contrast alone under each velocity (T x H)."""
+        ...
+
+    def group(self, g: int) -> ClusterEvaluator:
+        """Tile ``g``'s objective alone, sharing this one's volumes (used one at a time)."""
+        ...
+
+
 class Tiles:
-    """The events of each tile (``members``, ``counts``), their objective built on demand by
-    ``evaluator_for(indices)`` (one at a time: each holds a volume the size of the grid),
-    and ``contrasts_of(velocities)``: every tile's contrast under each velocity (T x H)."""
+    """The events of each tile (``members``, ``counts``), the objective of any of them built
+    on demand by ``evaluator_for(indices)`` (one at a time: each holds a volume the size of
+    the grid), and ``grouped``: every tile's contrast under each velocity
+    (:meth:`contrasts`, T x H) and each tile's own objective."""
 
     def __init__(
         self,
         evaluator_for: Callable[[np.ndarray], ClusterEvaluator],
         event_tile: np.ndarray,
         n_tiles: int,
-        contrasts_of: Callable[[np.ndarray], np.ndarray],
+        grouped: GroupedEvaluator,
     ) -> None:
         self._evaluator_for = evaluator_for
-        self.contrasts = contrasts_of
+        self._grouped = grouped
         order = np.argsort(event_tile, kind="stable")
         ids = event_tile[order]
         starts = np.searchsorted(ids, np.arange(n_tiles))
@@ -63,9 +77,9 @@ class Tiles:
         """The objective over the given events."""
         return self._evaluator_for(events)
 
-    def _evaluators(self) -> Iterator[ClusterEvaluator]:
-        """Each tile's objective, in tile order."""
-        return (self.objective(m) for m in self.members)
+    def contrasts(self, velocities: np.ndarray) -> np.ndarray:
+        """Every tile's contrast under each velocity (T x H)."""
+        return self._grouped.group_values(velocities)
 
     def events_of(self, tiles: np.ndarray) -> np.ndarray:
         """The events of the given tiles, sorted."""
@@ -79,8 +93,8 @@ class Tiles:
         x0 = np.zeros(bounds.shape[0])  # clipped into the box by maximize_contrast
         return np.array(
             [
-                maximize_contrast(ev, optimizer, x0, bounds, evals, int(s))[0]
-                for ev, s in zip(self._evaluators(), seeds, strict=True)
+                maximize_contrast(self._grouped.group(t), optimizer, x0, bounds, evals, int(s))[0]
+                for t, s in enumerate(seeds)
             ]
         )
 

@@ -274,6 +274,11 @@ class ModelEvaluator:
         velocity (n x dim): groups x n."""
         return self.inner.group_values(spatial_velocities(thetas))
 
+    def group(self, g: int) -> ModelEvaluator:
+        """Group ``g``'s events alone, voting into this evaluator's volumes: use the two one
+        at a time (:meth:`~spatialseg.volume.VolumeObjective.group`)."""
+        return ModelEvaluator(self.inner.group(g), self.dim)
+
     def volume(self, theta: np.ndarray) -> np.ndarray:
         """The volume of warped events for ``theta``."""
         return self.inner.volume(self._full(theta))

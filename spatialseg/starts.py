@@ -131,7 +131,7 @@ def _tiles_init(given: StartInput) -> motion_init.InitResult | None:
 
     in_tiles = np.flatnonzero(event_tile >= 0)
     grouped = window_objective(prepared, t_ref, settings, in_tiles, groups=event_tile[in_tiles])
-    tiles = hypotheses.Tiles(evaluator_for, event_tile, len(counts), grouped.group_values)
+    tiles = hypotheses.Tiles(evaluator_for, event_tile, len(counts), grouped)
     velocities, tile_label = hypotheses.tile_motions(
         tiles,
         k,

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from itertools import pairwise
 
 import numba
 import numpy as np
@@ -429,6 +428,7 @@ class VolumeObjective:
         self._scratch: tuple[np.ndarray, np.ndarray] | None = None
         self._pstep: tuple | None = None
         self._batch: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._lender: VolumeObjective | None = None  # whose zero volumes it votes into
         if weights is not None:
             self.set_weights(weights)
 
@@ -460,11 +460,14 @@ class VolumeObjective:
         """A zero volume with a one-voxel halo per side (``count`` of them stacked, if given)."""
         return np.zeros((*count, *(n + 2 for n in self.grid.shape)), dtype=self.dtype)
 
-    def _workspace(self, *count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """A zero padded volume and the per-event cell cache (``count`` of each, if given)."""
+    def _workspace(
+        self, *count: int, padded: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A zero padded volume (``padded`` if given) and the per-event cell cache (``count``
+        of each, if given)."""
         cells = np.empty((*count, self.n_events), dtype=np.int64)
         fracs = np.empty((*count, self.n_events, 3), dtype=self.dtype)
-        return self._zero_padded(*count), cells, fracs
+        return self._zero_padded(*count) if padded is None else padded, cells, fracs
 
     @staticmethod
     def _interior(padded: np.ndarray) -> np.ndarray:
@@ -572,7 +575,7 @@ class VolumeObjective:
         thetas = _finite_array("thetas", thetas, (None, 3), np.float64)
         starts = self._group_starts
         if not self._fused:
-            return np.array([self._part(a, b).batch_value(thetas) for a, b in pairwise(starts)])
+            return np.array([self.group(g).batch_value(thetas) for g in range(len(starts) - 1)])
         moments = np.zeros((len(starts) - 1, len(thetas), 2))
         chunks = min(numba.get_num_threads(), len(starts) - 1)
         if chunks and len(thetas):
@@ -583,7 +586,8 @@ class VolumeObjective:
     def _batch_args(self, chunks: int) -> tuple:
         """The batch kernels' grid arguments with ``chunks`` workspaces (made once, kept)."""
         if self._batch is None or len(self._batch[0]) < chunks:
-            self._batch = self._workspace(chunks)
+            lent = None if self._lender is None else self._lender._batch_args(chunks)[3]
+            self._batch = self._workspace(chunks, padded=lent)
         padded, cells, fracs = (a[:chunks] for a in self._batch)
         return self._origin, self._inv_size, self._proj, padded, cells, fracs
 
@@ -593,13 +597,30 @@ class VolumeObjective:
         flat = [value(m, q, n_voxels)[0] for m, q in moments.reshape(-1, 2)]
         return np.array(flat).reshape(moments.shape[:-1])
 
-    def _part(self, start: int, stop: int) -> VolumeObjective:
-        """A volume of the events ``start:stop`` of the locality order (one group)."""
-        sl = slice(start, stop)
-        weights = self._weights[sl]
-        return VolumeObjective(
-            self._points[sl], self._dt[sl], self.grid, self.objective, weights, self.dtype
+    def group(self, g: int) -> VolumeObjective:
+        """Group ``g``'s events alone (``groups``, in increasing group number; the events in
+        the order given, with their weights) as an objective that votes into this one's zero
+        volumes: use the two one at a time, never side by side.
+
+        Decision: a new objective's first calls write into a grid-sized volume of fresh
+        memory; on a 698 x 306 x 21 grid that cost 23 ms against 0.3 ms for a batch of ten
+        velocities over a 230-event tile, so judging a window's thousand tiles in turn
+        (:mod:`spatialseg.hypotheses`) cost their grid, not their events."""
+        count = len(self._group_starts) - 1
+        if not 0 <= g < count:
+            raise ValueError(f"group must be in [0, {count}), got {g}")
+        a, b = self._group_starts[g], self._group_starts[g + 1]
+        given = np.argsort(self._order[a:b], kind="stable")
+        part = VolumeObjective(
+            self._points[a:b][given],
+            self._dt[a:b][given],
+            self.grid,
+            self.objective,
+            self._weights[a:b][given],
+            self.dtype,
         )
+        part._padded, part._lender = self._padded, self
+        return part
 
     def volume(self, theta: np.ndarray) -> np.ndarray:
         """A copy of the raw VWE ``V(theta)`` (before any blur), shape ``grid.shape``."""

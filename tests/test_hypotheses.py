@@ -72,7 +72,7 @@ def test_tiles_group_events_and_recover_two_motions():
     grouped = VolumeObjective(
         points[in_tiles], dt[in_tiles], grid, "variance", groups=event_tile[in_tiles]
     )
-    tiles = Tiles(evaluator_for, event_tile, len(counts), grouped.group_values)
+    tiles = Tiles(evaluator_for, event_tile, len(counts), grouped)
     assert (
         sorted(np.concatenate(tiles.members).tolist()) == np.flatnonzero(event_tile >= 0).tolist()
     )
@@ -115,6 +115,37 @@ def test_grouped_contrasts_equal_one_volume_per_tile():
             index = np.flatnonzero(event_tile == tile)
             alone = VolumeObjective(points[index], dt[index], grid, objective)
             assert np.array_equal(grouped[tile], alone.batch_value(velocities))
+
+
+def test_a_groups_own_objective_equals_a_volume_of_its_events_and_leaves_the_shared_one_zero():
+    """``group(g)`` judges tile ``g``'s events (in the order given, with their weights) as a
+    volume of its own would, bit for bit, although it votes into the grouped volume's
+    buffers; the grouped volume's values are unchanged after it."""
+    rng = np.random.default_rng(2)
+    points, dt, _, _ = _two_motion_cloud(rng)
+    grid = grid_around(points, np.array([0.005, 0.005, 0.02]), 0.1, 10**7)
+    event_tile, counts = image_tiles(points[:, :2], 0.05, 30)
+    in_tiles = np.flatnonzero(event_tile >= 0)
+    weights = rng.uniform(0.2, 1.0, len(in_tiles))
+    one = VolumeObjective(
+        points[in_tiles], dt[in_tiles], grid, "variance", weights, groups=event_tile[in_tiles]
+    )
+    velocities = rng.normal(0.0, 0.3, (5, 3))
+    before = one.batch_value(velocities), one.value_and_grad(velocities[0])
+    for tile in (0, len(counts) // 2, len(counts) - 1):
+        mine = event_tile[in_tiles] == tile
+        alone = VolumeObjective(points[in_tiles][mine], dt[in_tiles][mine], grid, "variance")
+        alone.set_weights(weights[mine])
+        part = one.group(tile)
+        assert np.array_equal(part.batch_value(velocities), alone.batch_value(velocities))
+        assert part.value(velocities[1]) == alone.value(velocities[1])
+        value, grad = part.value_and_grad(velocities[2])
+        assert value == alone.value_and_grad(velocities[2])[0]
+        assert np.array_equal(grad, alone.grad(velocities[2]))
+    after = one.batch_value(velocities), one.value_and_grad(velocities[0])
+    assert np.array_equal(after[0], before[0]) and after[1][0] == before[1][0]
+    with pytest.raises(ValueError, match=r"group must be in \[0, "):
+        one.group(len(counts))
 
 
 def test_volume_refuses_groups_that_are_not_one_integer_per_event():
