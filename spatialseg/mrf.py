@@ -12,7 +12,9 @@ lets its neighbours outvote a weak membership, not a confident one.
 from __future__ import annotations
 
 import maxflow
+import numba
 import numpy as np
+from numba import njit, prange
 from scipy.spatial import cKDTree
 
 __all__ = ["NEIGHBOURS", "neighbour_pairs", "potts_labels", "space_time"]
@@ -34,27 +36,39 @@ def space_time(xy: np.ndarray, t: np.ndarray, speed: float) -> np.ndarray:
 
 def neighbour_pairs(points: np.ndarray, k: int = NEIGHBOURS) -> tuple[np.ndarray, np.ndarray]:
     """The undirected pairs (i < j, each once, in order of i then j) of every point and its
-    ``k`` nearest others."""
+    ``k`` nearest others; the search runs on as many cores as the kernels (numba's threads)."""
     n = len(points)
     if n < 2:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     k = min(k, n - 1)
     tree = cKDTree(points, compact_nodes=False, balanced_tree=False)  # built faster, same answer
-    others = tree.query(points, k=k + 1)[1][:, 1:].astype(np.int64)
-    first = np.repeat(np.arange(n, dtype=np.int64), k)
-    second = others.reshape(-1)
-    keep = first != second  # duplicate points may return themselves
-    keep[_listed_both_ways(others, first, second)] = False
-    a, b = first[keep], second[keep]
+    found = tree.query(points, k=k + 1, workers=numba.get_num_threads())[1]
+    others = np.ascontiguousarray(found[:, 1:], dtype=np.int64)
+    keep = _own_pairs(others)
+    a = np.repeat(np.arange(n, dtype=np.int64), k)[keep.reshape(-1)]
+    b = others[keep]
     return np.divmod(np.sort(np.minimum(a, b) * n + np.maximum(a, b)), n)
 
 
-def _listed_both_ways(others: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """Where a pair from a point to a lower-numbered one (``first`` > ``second``) is also
-    listed from that point (``others``: each point's neighbours), so it is kept once; a
-    per-pair check, several times faster than deduplicating the pairs with ``np.unique``."""
-    backward = np.flatnonzero(first > second)
-    return backward[(others[second[backward]] == first[backward, None]).any(axis=1)]
+@njit(cache=True, parallel=True)
+def _own_pairs(others: np.ndarray) -> np.ndarray:
+    """``keep[i, m]``: whether point ``i`` and its ``m``-th neighbour ``others[i, m]`` make a
+    pair listed from ``i``: not ``i`` itself (duplicate points may return themselves), nor a
+    lower-numbered point that lists ``i`` too (the pair is kept from there). A per-pair check
+    in one parallel pass, several times faster than deduplicating with ``np.unique``."""
+    n, k = others.shape
+    keep = np.ones((n, k), dtype=np.bool_)
+    for i in prange(n):
+        for m in range(k):
+            j = others[i, m]
+            if j == i:
+                keep[i, m] = False
+            elif j < i:
+                for q in range(k):
+                    if others[j, q] == i:
+                        keep[i, m] = False
+                        break
+    return keep
 
 
 def potts_labels(
