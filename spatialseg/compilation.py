@@ -30,6 +30,7 @@ KERNEL_MODULES = (
     "spatialseg.objectives",
     "spatialseg.smoothing",
     "spatialseg.denoise",
+    "spatialseg.mrf",
 )
 
 #: About how long a cold cache takes to compile (seconds; 13 s measured for a run of
