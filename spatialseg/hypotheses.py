@@ -20,14 +20,7 @@ import numpy as np
 
 from spatialseg.clustering import ClusterEvaluator, Maximizer, maximize_contrast
 
-__all__ = [
-    "GroupedEvaluator",
-    "Tiles",
-    "greedy_cover",
-    "image_tiles",
-    "tile_motions",
-    "tile_sample",
-]
+__all__ = ["GroupedEvaluator", "Tiles", "greedy_cover", "image_tiles", "tile_motions"]
 
 
 def image_tiles(xy: np.ndarray, size: float, min_events: int) -> tuple[np.ndarray, np.ndarray]:
@@ -46,36 +39,6 @@ def image_tiles(xy: np.ndarray, size: float, min_events: int) -> tuple[np.ndarra
     return renumber[tile], counts[dense]
 
 
-def tile_sample(
-    event_tile: np.ndarray, counts: np.ndarray, budget: int | None, floor: int, seed: int
-) -> np.ndarray:
-    """The tile events the velocities are fitted on (mask over ``event_tile``): all of a
-    tile with at most ``cap`` events, a random ``cap`` of a denser one, where ``cap`` is the
-    largest that keeps at most ``budget`` events in all, and at least ``floor``; with
-    ``budget`` None, or at most that many events in tiles, every tile event.
-
-    Decision: judging every tile under every tile's velocity costs the tiles' events once
-    per tile, so a window's cost grew with its events times its tiles; a level cap keeps
-    sparse tiles (a small object's) whole and thins the dense ones, where a uniform sample
-    of the window left sparse tiles too few events to fit (docs/performance.md, session 17).
-    """
-    in_tiles = event_tile >= 0
-    if budget is None or int(counts.sum()) <= budget:
-        return in_tiles
-    low, high = 0, int(counts.max())  # the level: sum of min(counts, level) <= budget
-    while low < high:
-        mid = (low + high + 1) // 2
-        low, high = (mid, high) if np.minimum(counts, mid).sum() <= budget else (low, mid - 1)
-    cap = max(low, floor)
-    shuffled = np.random.default_rng(seed).permutation(np.flatnonzero(in_tiles))
-    by_tile = shuffled[np.argsort(event_tile[shuffled], kind="stable")]
-    tile_of = event_tile[by_tile]
-    rank = np.arange(len(by_tile)) - np.searchsorted(tile_of, tile_of)
-    keep = np.zeros(len(event_tile), dtype=bool)
-    keep[by_tile[rank < cap]] = True
-    return keep
-
-
 class GroupedEvaluator(Protocol):
     """One objective over every tile's events, grouped by tile (tile number = group)."""
 
@@ -89,28 +52,26 @@ class GroupedEvaluator(Protocol):
 
 
 class Tiles:
-    """The events each tile is fitted on (``members``, by ``event_tile``, -1 for none), each
-    tile's weight in the cover (``counts``: its events in the window, ``weights``), the
-    objective of any events built on demand by ``evaluator_for(indices)`` (one at a time:
-    each holds a volume the size of the grid), and ``grouped``: every tile's contrast under
-    each velocity (:meth:`contrasts`, T x H) and each tile's own objective."""
+    """The events of each tile (``members``, ``counts``), the objective of any of them built
+    on demand by ``evaluator_for(indices)`` (one at a time: each holds a volume the size of
+    the grid), and ``grouped``: every tile's contrast under each velocity
+    (:meth:`contrasts`, T x H) and each tile's own objective."""
 
     def __init__(
         self,
         evaluator_for: Callable[[np.ndarray], ClusterEvaluator],
         event_tile: np.ndarray,
-        weights: np.ndarray,
+        n_tiles: int,
         grouped: GroupedEvaluator,
     ) -> None:
         self._evaluator_for = evaluator_for
         self._grouped = grouped
         order = np.argsort(event_tile, kind="stable")
         ids = event_tile[order]
-        n_tiles = len(weights)
         starts = np.searchsorted(ids, np.arange(n_tiles))
         ends = np.searchsorted(ids, np.arange(n_tiles), side="right")
         self.members = [order[s:e] for s, e in zip(starts, ends, strict=True)]
-        self.counts = np.asarray(weights)
+        self.counts = ends - starts
 
     def objective(self, events: np.ndarray) -> ClusterEvaluator:
         """The objective over the given events."""

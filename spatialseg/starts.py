@@ -129,13 +129,9 @@ def _tiles_init(given: StartInput) -> motion_init.InitResult | None:
     def evaluator_for(index: np.ndarray) -> ModelEvaluator:
         return window_objective(prepared, t_ref, settings, index)
 
-    sample = hypotheses.tile_sample(
-        event_tile, counts, settings.clustering.step_events, params.min_events, given.seed
-    )
-    fitted = np.where(sample, event_tile, -1)
-    in_tiles = np.flatnonzero(sample)
-    grouped = window_objective(prepared, t_ref, settings, in_tiles, groups=fitted[in_tiles])
-    tiles = hypotheses.Tiles(evaluator_for, fitted, counts, grouped)
+    in_tiles = np.flatnonzero(event_tile >= 0)
+    grouped = window_objective(prepared, t_ref, settings, in_tiles, groups=event_tile[in_tiles])
+    tiles = hypotheses.Tiles(evaluator_for, event_tile, len(counts), grouped)
     velocities, tile_label = hypotheses.tile_motions(
         tiles,
         k,

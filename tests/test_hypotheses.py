@@ -72,7 +72,7 @@ def test_tiles_group_events_and_recover_two_motions():
     grouped = VolumeObjective(
         points[in_tiles], dt[in_tiles], grid, "variance", groups=event_tile[in_tiles]
     )
-    tiles = Tiles(evaluator_for, event_tile, counts, grouped)
+    tiles = Tiles(evaluator_for, event_tile, len(counts), grouped)
     assert (
         sorted(np.concatenate(tiles.members).tolist()) == np.flatnonzero(event_tile >= 0).tolist()
     )
