@@ -20,7 +20,14 @@ import numpy as np
 
 from spatialseg.clustering import ClusterEvaluator, Maximizer, maximize_contrast
 
-__all__ = ["GroupedEvaluator", "Tiles", "greedy_cover", "image_tiles", "tile_motions"]
+__all__ = [
+    "GroupedEvaluator",
+    "Tiles",
+    "distinct_motions",
+    "greedy_cover",
+    "image_tiles",
+    "tile_motions",
+]
 
 
 def image_tiles(xy: np.ndarray, size: float, min_events: int) -> tuple[np.ndarray, np.ndarray]:
@@ -128,6 +135,26 @@ def greedy_cover(
     return chosen
 
 
+#: Voxels: two velocities that shift every probe point less than this apart are alike.
+#: A quarter of a voxel over half the window (a voxel of the image grid is two pixels);
+#: at a whole voxel the interior window's two carts were merged.
+ALIKE = 0.25
+
+
+def distinct_motions(shifts: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The hypotheses kept, heaviest first (indices): each one whose shifts (H x P x 3,
+    :func:`spatialseg.points.voxel_shifts`) differ from those of a heavier kept one by
+    under :data:`ALIKE` at every one of the P points is dropped as the same motion."""
+    kept: list[int] = []
+    for h in np.argsort(-np.asarray(weights), kind="stable"):
+        if kept:
+            gap = np.linalg.norm(shifts[kept] - shifts[h], axis=2)
+            if np.any(np.nanmax(gap, axis=1) < ALIKE):
+                continue
+        kept.append(int(h))
+    return np.array(kept, dtype=np.int64)
+
+
 def tile_motions(
     tiles: Tiles,
     k: int,
@@ -139,13 +166,22 @@ def tile_motions(
     rounds: int,
     explained: float | None,
     seed: int,
+    shifts: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """K velocities (K x dim) and each tile's motion (T,): the greedy cover of the tiles' own
     maxima (``optimizer``), then ``rounds`` of re-fitting each velocity on its tiles' events
     (``refit``, a local optimiser, from the velocity) and re-assigning each tile to the
-    velocity it scores best (relative to the tile's own maximum for the cover; the best
-    velocity of a tile is the same either way). ``explained``: see :func:`greedy_cover`."""
+    velocity it scores best (relative to the tile's best proposal for the cover; the best
+    velocity of a tile is the same either way). ``explained``: see :func:`greedy_cover`.
+    ``shifts(velocities)``: their :func:`~spatialseg.points.voxel_shifts`; with it, the
+    cover chooses among the :func:`distinct_motions` only, the denser tile's of alike ones.
+
+    Decision: every tile's contrast under every tile's maximum is most of the start's cost
+    on a large window (T x T group contrasts), and the tiles of one object propose
+    velocities the volume cannot tell apart."""
     own = tiles.own_maxima(optimizer, bounds, evals=evals, seed=seed)
+    if shifts is not None:
+        own = own[distinct_motions(shifts(own), tiles.counts)]
     raw = tiles.contrasts(own)
     best = np.maximum(raw.max(axis=1), 1e-300)
     chosen = greedy_cover(raw / best[:, None], tiles.counts.astype(np.float64), k, explained)

@@ -35,6 +35,7 @@ __all__ = [
     "spatial_velocities",
     "volume_grid",
     "volume_objective",
+    "voxel_shifts",
     "window_objective",
 ]
 
@@ -205,6 +206,16 @@ def search_bounds(
         depth = float(np.median(prepared.points[:, 2]))
         half[2] = min(half[2], max_depth_change * depth / duration)
     return np.column_stack([-half, half])
+
+
+def voxel_shifts(prepared: Prepared, velocities: np.ndarray, probes: int) -> np.ndarray:
+    """Where each of the model's velocities (H x dim) carries up to ``probes`` of the
+    window's points (every n-th) over half the window's span, in voxels of its grid
+    (H x P x 3): what the volume sees of a velocity, so two are compared by their shifts."""
+    points = prepared.points[:: max(1, len(prepared.points) // probes)]
+    half = 0.5 * float(prepared.t.max() - prepared.t.min())
+    moved = spatial_velocities(np.atleast_2d(np.asarray(velocities, dtype=np.float64)))
+    return np.stack([prepared.grid.continuous_index(points - half * v) for v in moved])
 
 
 def reference_time(t: np.ndarray, mode: str) -> float:

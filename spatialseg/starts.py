@@ -27,6 +27,7 @@ from spatialseg.points import (
     reference_time,
     spatial_velocities,
     volume_grid,
+    voxel_shifts,
     window_objective,
 )
 from spatialseg.recording import Recording
@@ -114,6 +115,10 @@ def start_named(name: Any) -> Start:
     return _REGISTRY[name]
 
 
+#: Points the tile start compares its tiles' velocities on (:func:`hypotheses.distinct_motions`).
+TILE_PROBES = 64
+
+
 def _tiles_init(given: StartInput) -> motion_init.InitResult | None:
     """Initial motions from each image tile's own contrast maximum and a greedy cover
     (:mod:`spatialseg.hypotheses`); None when fewer than ``k`` tiles are dense enough."""
@@ -142,6 +147,7 @@ def _tiles_init(given: StartInput) -> motion_init.InitResult | None:
         rounds=params.rounds,
         explained=params.explained,
         seed=given.seed,
+        shifts=lambda velocities: voxel_shifts(prepared, velocities, TILE_PROBES),
     )
     thetas = spatial_velocities(velocities)
     labels = np.where(event_tile >= 0, tile_label[np.maximum(event_tile, 0)], -1)

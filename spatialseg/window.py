@@ -45,6 +45,7 @@ from spatialseg.points import (
     search_bounds,
     spatial_velocities,
     volume_objective,
+    voxel_shifts,
     window_objective,
 )
 from spatialseg.recording import Camera, Recording
@@ -439,16 +440,16 @@ def _better(result: ClusteringResult, than: ClusteringResult, *, auto: bool) -> 
     return result.total > than.total
 
 
+#: Points :func:`motion_separation` measures two velocities on.
+SEPARATION_PROBES = 2000
+
+
 def motion_separation(prepared: Prepared, a: np.ndarray, b: np.ndarray) -> float:
     """How far apart (voxels, median over up to 2,000 of the points) two velocities of the
     model move the window's points over half its span: below a voxel the volume cannot
     tell the two motions apart."""
-    points = prepared.points[:: max(1, len(prepared.points) // 2000)]
-    half = 0.5 * float(prepared.t.max() - prepared.t.min())
-    va, vb = spatial_velocities(np.array([a, b]))
-    grid = prepared.grid
-    gap = grid.continuous_index(points - half * va) - grid.continuous_index(points - half * vb)
-    return float(np.nanmedian(np.linalg.norm(gap, axis=1)))
+    shifts = voxel_shifts(prepared, np.array([a, b]), SEPARATION_PROBES)
+    return float(np.nanmedian(np.linalg.norm(shifts[0] - shifts[1], axis=1)))
 
 
 def refit_velocities(

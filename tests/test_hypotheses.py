@@ -10,7 +10,13 @@ from omegaconf import OmegaConf
 import optimizers
 from spatialseg.config import conf_dir
 from spatialseg.grid import grid_around
-from spatialseg.hypotheses import Tiles, greedy_cover, image_tiles, tile_motions
+from spatialseg.hypotheses import (
+    Tiles,
+    distinct_motions,
+    greedy_cover,
+    image_tiles,
+    tile_motions,
+)
 from spatialseg.metrics import segmentation_metrics
 from spatialseg.objectives import make_objective
 from spatialseg.points import ModelEvaluator
@@ -59,7 +65,24 @@ def test_explained_tiles_keep_a_small_object():
     assert greedy_cover(scores, weights, 2, explained=0.85)[1] == 2
 
 
-def test_tiles_group_events_and_recover_two_motions():
+def test_distinct_motions_keep_the_heaviest_of_alike_velocities():
+    """Hypotheses 0 and 2 shift every point alike (under a quarter voxel apart), 1 and 3
+    differ from both; 0 is dropped for the heavier 2. Alike means alike at every point: 3
+    differs from 1 at one of three points only, by half a voxel, and is kept."""
+    shifts = np.zeros((4, 3, 3))
+    shifts[1, :, 0] = 4.0
+    shifts[2, :, 1] = 0.2
+    shifts[3, :, 0] = 4.0
+    shifts[3, 0, 2] = 0.5
+    assert distinct_motions(shifts, np.array([5.0, 1.0, 9.0, 2.0])).tolist() == [2, 3, 1]
+    shifts[3, 0, 2] = 0.1  # now alike to 1 everywhere: the lighter of the two goes
+    assert distinct_motions(shifts, np.array([5.0, 1.0, 9.0, 2.0])).tolist() == [2, 3]
+    assert distinct_motions(shifts, np.array([5.0, 3.0, 9.0, 2.0])).tolist() == [2, 1]
+
+
+@pytest.mark.parametrize("alike", ["kept", "merged"])
+def test_tiles_group_events_and_recover_two_motions(alike):
+    """With the tiles' alike velocities merged (``shifts``) or not, the two motions."""
     rng = np.random.default_rng(0)
     points, dt, labels, truth = _two_motion_cloud(rng)
     grid = grid_around(points, np.array([0.005, 0.005, 0.02]), 0.1, 10**7)
@@ -78,6 +101,11 @@ def test_tiles_group_events_and_recover_two_motions():
     )
     bounds = np.array([[-1.0, 1.0], [-1.0, 1.0], [-0.1, 0.1]])
     assert tiles.counts.tolist() == counts.tolist()
+    probes, half = points[::50], 0.5 * float(np.ptp(dt))
+
+    def shifts(velocities: np.ndarray) -> np.ndarray:
+        return np.stack([grid.continuous_index(probes - half * v) for v in velocities])
+
     velocities, tile_label = tile_motions(
         tiles,
         2,
@@ -88,6 +116,7 @@ def test_tiles_group_events_and_recover_two_motions():
         rounds=2,
         explained=0.85,
         seed=0,
+        shifts=shifts if alike == "merged" else None,
     )
     order = np.argsort(velocities[:, 0])[::-1]  # truth: +0.3 then -0.2 in vx
     np.testing.assert_allclose(velocities[order, :2], truth[:, :2], atol=0.03)
