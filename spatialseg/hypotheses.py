@@ -174,14 +174,16 @@ def tile_motions(
     velocity it scores best (relative to the tile's best proposal for the cover; the best
     velocity of a tile is the same either way). ``explained``: see :func:`greedy_cover`.
     ``shifts(velocities)``: their :func:`~spatialseg.points.voxel_shifts`; with it, the
-    cover chooses among the :func:`distinct_motions` only, the denser tile's of alike ones.
+    cover chooses among the :func:`distinct_motions` only, the denser tile's of alike ones
+    (among all when fewer than ``k`` are distinct, so that it still picks ``k``).
 
     Decision: every tile's contrast under every tile's maximum is most of the start's cost
     on a large window (T x T group contrasts), and the tiles of one object propose
     velocities the volume cannot tell apart."""
     own = tiles.own_maxima(optimizer, bounds, evals=evals, seed=seed)
     if shifts is not None:
-        own = own[distinct_motions(shifts(own), tiles.counts)]
+        distinct = distinct_motions(shifts(own), tiles.counts)
+        own = own[distinct] if len(distinct) >= k else own
     raw = tiles.contrasts(own)
     best = np.maximum(raw.max(axis=1), 1e-300)
     chosen = greedy_cover(raw / best[:, None], tiles.counts.astype(np.float64), k, explained)

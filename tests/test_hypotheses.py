@@ -80,9 +80,10 @@ def test_distinct_motions_keep_the_heaviest_of_alike_velocities():
     assert distinct_motions(shifts, np.array([5.0, 3.0, 9.0, 2.0])).tolist() == [2, 1]
 
 
-@pytest.mark.parametrize("alike", ["kept", "merged"])
+@pytest.mark.parametrize("alike", ["kept", "merged", "all"])
 def test_tiles_group_events_and_recover_two_motions(alike):
-    """With the tiles' alike velocities merged (``shifts``) or not, the two motions."""
+    """With the tiles' alike velocities merged (``shifts``) or not, the two motions; when
+    fewer than K proposals are distinct (``all``: every one alike), the cover uses all."""
     rng = np.random.default_rng(0)
     points, dt, labels, truth = _two_motion_cloud(rng)
     grid = grid_around(points, np.array([0.005, 0.005, 0.02]), 0.1, 10**7)
@@ -116,7 +117,7 @@ def test_tiles_group_events_and_recover_two_motions(alike):
         rounds=2,
         explained=0.85,
         seed=0,
-        shifts=shifts if alike == "merged" else None,
+        shifts={"kept": None, "merged": shifts, "all": lambda v: np.zeros((len(v), 1, 3))}[alike],
     )
     order = np.argsort(velocities[:, 0])[::-1]  # truth: +0.3 then -0.2 in vx
     np.testing.assert_allclose(velocities[order, :2], truth[:, :2], atol=0.03)
