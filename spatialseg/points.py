@@ -214,7 +214,7 @@ def voxel_shifts(prepared: Prepared, velocities: np.ndarray, probes: int) -> np.
     (H x P x 3): what the volume sees of a velocity, so two are compared by their shifts."""
     points = prepared.points[:: max(1, len(prepared.points) // probes)]
     half = 0.5 * float(prepared.t.max() - prepared.t.min())
-    moved = spatial_velocities(np.atleast_2d(np.asarray(velocities, dtype=np.float64)))
+    moved = spatial_velocities(velocities)
     return np.stack([prepared.grid.continuous_index(points - half * v) for v in moved])
 
 
