@@ -139,6 +139,7 @@ class WindowTask:
     independent)."""
 
     span: Recording
+    inner: np.ndarray
     settings: Settings
     optimizer: Any
     seed: int
@@ -148,7 +149,9 @@ def _run_task(task: WindowTask) -> tuple[WindowResult, float]:
     """The task's window segmented, and the seconds it took (a module-level function, so a
     process pool can pickle it)."""
     start = time.perf_counter()
-    result = segment_window(task.span, task.settings, task.optimizer, seed=task.seed)
+    result = segment_window(
+        task.span, task.settings, task.optimizer, seed=task.seed, inner=task.inner
+    )
     return result, time.perf_counter() - start
 
 
@@ -181,8 +184,8 @@ def _segmented_windows(
     else:
         spans = list(spans)
         tasks = [
-            WindowTask(span, settings, optimizer, int(s))
-            for (_, span, _), s in zip(spans, seeds, strict=False)
+            WindowTask(span, inner, settings, optimizer, int(s))
+            for (_, span, inner), s in zip(spans, seeds, strict=False)
         ]
         runs = map_in_order(_run_task, tasks, engine=engine, workers=workers)
         done = ((window, *run) for window, run in zip(spans, runs, strict=True))
@@ -216,6 +219,7 @@ def _serial_windows(
             on_iteration=on_iteration,
             previous=previous,
             progress=name,
+            inner=window[2],
         )
         previous = res.clustering.thetas
         yield window, res, time.perf_counter() - start

@@ -122,12 +122,16 @@ def segment_window(
     on_iteration: Any = None,
     previous: np.ndarray | None = None,
     progress: str | None = None,
+    inner: np.ndarray | None = None,
 ) -> WindowResult:
     """Segment one window (two depth maps) into ``n_clusters`` motions; with
     ``init.method=auto``, from each start of ``init.auto``, keeping the highest total
     contrast. ``previous`` (K x the model's components): the preceding window's final
     velocities, the ``previous`` start (skipped when None). ``progress``: the window's name
-    in a DEBUG line per iteration and per start (None: no such lines)."""
+    in a DEBUG line per iteration and per start (None: no such lines). ``inner``: the
+    window's own events when ``window`` is a span with context windows (``inner`` of
+    :meth:`~spatialseg.recording.Recording.spans`; None: every event); only their labels are
+    smoothed, as each context window's own span labels it."""
     wanted = settings.cluster_count
     k = wanted or (1 if previous is None else len(previous))
     starts = [s for s in init_candidates(settings.init) if s != PREVIOUS or previous is not None]
@@ -253,7 +257,7 @@ def segment_window(
     )
     if clustering.smoothness > 0:
         start = time.perf_counter()
-        labels = smoothed_labels(window, prepared, result, probabilities, labels, clustering)
+        labels = smoothed_labels(window, prepared, result, probabilities, labels, clustering, inner)
         timings["smooth"] = time.perf_counter() - start
     return WindowResult(
         labels, probabilities, result, prepared, t_ref, timings, bool(init.fallback), method
@@ -592,12 +596,16 @@ def smoothed_labels(
     probabilities: np.ndarray,
     labels: np.ndarray,
     clustering: ClusteringSettings,
+    inner: np.ndarray | None = None,
 ) -> np.ndarray:
-    """``labels`` (N,) with every labelled event's label Potts-smoothed (:mod:`spatialseg.mrf`,
-    weight ``clustering.smoothness``, from its memberships ``probabilities``, N x K);
-    neighbours in space-time, the time scaled by the events' image speed
-    (:func:`image_speed`; at least a pixel over the window). Unlabelled events stay -1."""
+    """``labels`` (N,) with every labelled event's label (of the events ``inner`` only, when
+    given) Potts-smoothed (:mod:`spatialseg.mrf`, weight ``clustering.smoothness``, from its
+    memberships ``probabilities``, N x K); neighbours in space-time, the time scaled by the
+    events' image speed (:func:`image_speed`; at least a pixel over the window). Unlabelled
+    events stay -1."""
     index = np.flatnonzero(labels >= 0)
+    if inner is not None:
+        index = np.intersect1d(index, inner, assume_unique=True)
     if len(index) < 2:
         return labels
     ev = window.events

@@ -125,6 +125,22 @@ def test_a_weakly_mislabelled_event_of_a_segmented_window_takes_its_neighbours_l
     )
 
 
+def test_only_the_inner_events_of_a_span_are_smoothed(interior_window):
+    window, clustering, res = interior_window
+    smoothing = replace(clustering, smoothness=ClusteringSettings().smoothness)
+    p = res.probabilities.copy()
+    labels = res.labels.copy()
+    confident = np.flatnonzero((labels == 0) & (p[:, 0] > 0.9))
+    early, late = int(confident[10]), int(confident[-10])  # events are in time order
+    p[[early, late]] = [0.4, 0.6]  # both weakly the other cluster's
+    labels[[early, late]] = 1
+    half = len(labels) // 2
+    inner = np.arange(half, len(labels))  # the span's second half is the window's own
+    smoothed = smoothed_labels(window, res.prepared, res.clustering, p, labels, smoothing, inner)
+    assert smoothed[late] == 0 and smoothed[early] == 1
+    assert np.array_equal(smoothed[:half], labels[:half])
+
+
 def test_the_image_speed_is_the_flow_of_the_likeliest_motion():
     camera = Camera(fx=200.0, fy=100.0, cx=0.0, cy=0.0, width=10, height=10)
     grid = VoxelGrid(origin=np.zeros(3), voxel_size=np.ones(3), shape=(2, 2, 2))
