@@ -76,7 +76,8 @@ def potts_labels(
 ) -> np.ndarray:
     """The labels (N,) minimising the Potts energy of ``probabilities`` (N x K) on the pairs
     (``first``, ``second``) with ``weight`` per differing pair: alpha-expansion from the
-    likeliest labels, one minimum cut per label and sweep, until a sweep changes nothing."""
+    likeliest labels, one minimum cut per label in turn, until every label's last expansion
+    is of the labels as they are now."""
     p = np.asarray(probabilities, dtype=np.float64)
     if p.ndim != 2 or not np.all(np.isfinite(p)):
         raise ValueError("memberships must be a finite N x K array")
@@ -86,12 +87,13 @@ def potts_labels(
     if p.shape[1] < 2 or len(first) == 0 or weight == 0:
         return labels
     cost = -np.log(np.maximum(p, FLOOR))
-    for _ in range(MAX_SWEEPS):
-        before = labels.copy()
-        for alpha in range(p.shape[1]):
-            labels = _expand(cost, labels, first, second, weight, alpha)
-        if np.array_equal(before, labels):
+    k, unchanged = p.shape[1], 0
+    for step in range(MAX_SWEEPS * k):
+        if step >= k and unchanged >= k - 1:  # the next label's expansion would repeat itself
             break
+        moved = _expand(cost, labels, first, second, weight, step % k)
+        unchanged = unchanged + 1 if np.array_equal(moved, labels) else 0
+        labels = moved
     return labels
 
 

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 import optimizers
 from spatialseg.grid import VoxelGrid
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.mrf import FLOOR, neighbour_pairs, potts_labels, space_time
+from spatialseg.mrf import FLOOR, _expand, neighbour_pairs, potts_labels, space_time
 from spatialseg.points import Prepared
 from spatialseg.recording import Camera
 from spatialseg.scenes import load_scene
@@ -49,6 +49,19 @@ def test_two_labels_reach_the_minimum_and_more_stay_within_twice_it(seed):
             assert found == pytest.approx(best)
         else:
             assert found <= 2 * best + 1e-9
+
+
+@pytest.mark.parametrize("k", [2, 3, 4])
+def test_the_labels_returned_are_a_fixed_point_of_every_expansion(k):
+    rng = np.random.default_rng(k)
+    points = rng.uniform(0, 10, (500, 3))
+    first, second = neighbour_pairs(points)
+    p = rng.dirichlet(np.full(k, 0.5), size=len(points))
+    labels = potts_labels(p, first, second, 1.0)
+    assert not np.array_equal(labels, p.argmax(axis=1))
+    cost = -np.log(np.maximum(p, FLOOR))
+    for alpha in range(k):
+        assert np.array_equal(_expand(cost, labels, first, second, 1.0, alpha), labels)
 
 
 def test_an_isolated_weak_label_is_outvoted_and_a_confident_one_kept():
