@@ -209,7 +209,7 @@ def _serial_windows(
     """The spans segmented here, one after the other, each from the one before's velocities
     too (the ``previous`` start); each span with its result and seconds."""
     for name, window, window_seed in zip(names, spans, seeds, strict=False):
-        span = window[1]
+        _, span, inner = window
         start = time.perf_counter()
         res = segment_window(
             span,
@@ -219,7 +219,7 @@ def _serial_windows(
             on_iteration=on_iteration,
             previous=previous,
             progress=name,
-            inner=window[2],
+            inner=inner,
         )
         previous = res.clustering.thetas
         yield window, res, time.perf_counter() - start
