@@ -3,7 +3,7 @@
     python experiments/generalisation.py --split dev|heldout --per-family N
         [--models spatial planar spatial:clustering.max_iterations=10]
         [--families opposite many ...] [--json OUT] [--jobs J] [--cache DIR]
-        [--fix depth_flicker=0.1 ...] [--resume] [--optimiser-seeds N]
+        [--fix depth_flicker=0.1 ...] [--resume] [--optimiser-seeds N] [--totals]
 
 Seeds of ``dev`` are 0-999, those of ``heldout`` 1000 and above: choose defaults on
 ``dev`` only, report both. Each scene is drawn from its family and seed
@@ -20,7 +20,10 @@ sets a modifier for every scene instead of drawing it (``depth_bias``, ``depth_f
 scenes it already holds (a killed run goes on where it stopped). ``--optimiser-seeds N``
 segments each scene with N optimiser seeds, its own first (:func:`optimiser_seeds`): the
 seed alone moves one recording's accuracy by up to 0.28, so comparing two settings over
-several seeds per scene measures the settings, not the seeds.
+several seeds per scene measures the settings, not the seeds. ``--totals`` records, per
+spatial window, the total contrast of the segmentation found and of the truth
+(:func:`window_totals`) and prints which failed runs the search failed (the truth scores
+higher: a better search would find it) and which the objective failed.
 
 Prints a Markdown table per family and model: accuracy mean, 10th percentile and worst row,
 the per-window-matched accuracy, mean IoU, velocity error, unassigned share and time. The
@@ -38,7 +41,7 @@ import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
@@ -49,8 +52,9 @@ from hydra.utils import instantiate
 from spatialseg.io import read_any, write_recording
 from spatialseg.metrics import recording_metrics
 from spatialseg.pipeline import segment_loaded
-from spatialseg.points import spatial_velocities
+from spatialseg.points import search_bounds, spatial_velocities, window_objective
 from spatialseg.recording import Recording
+from spatialseg.settings import Settings
 from spatialseg.simulate.families import (
     FAMILIES,
     FamilyScene,
@@ -58,7 +62,7 @@ from spatialseg.simulate.families import (
     draw_scene,
     simulate_family,
 )
-from spatialseg.window import check_config
+from spatialseg.window import WindowResult, check_config, refit_velocities
 
 #: First seed of each split: dev draws 0-999, heldout 1000 and above.
 SPLITS = {"dev": 0, "heldout": 1000}
@@ -121,10 +125,84 @@ def score(recording: Recording, seg: Any, spatial: bool) -> dict[str, Any]:
     )
 
 
-def run_scene(task: tuple[str, int, list[str], dict, Path | None, int]) -> list[dict[str, Any]]:
+def _summed_contrast(evaluator: Any, thetas: np.ndarray, labels: np.ndarray) -> float:
+    """The sum over clusters of each cluster's contrast at its velocity (``thetas[j]``) over
+    the events labelled ``j`` (-1: none)."""
+    total = 0.0
+    for j, theta in enumerate(thetas):
+        evaluator.set_weights((labels == j).astype(np.float64))
+        total += float(evaluator.value(theta))
+    return total
+
+
+def window_totals(
+    window: WindowResult,
+    truth: np.ndarray,
+    motions: dict[int, np.ndarray],
+    settings: Settings,
+    *,
+    seed: int,
+    windows: int,
+) -> tuple[float, float]:
+    """The total contrast of a spatial window's segmentation and of the truth, over the span's
+    fitted events with a true object: the found clusters' final velocities over their
+    likeliest events; the true objects' velocities (refitted as the found ones are, the
+    better of the two kept) over their own events (``truth``: the span's true labels;
+    ``windows``: how many windows the span holds).
+
+    Why: with the truth's total above the found one, the search missed a better partition;
+    with the found one above, the objective prefers the wrong partition."""
+    prepared, result = window.prepared, window.clustering
+    own = truth[prepared.valid]
+    ids = [o for o in motions if np.any(own == o)]
+    true_labels = np.full(len(own), -1)
+    for j, o in enumerate(ids):
+        true_labels[own == o] = j
+    found_labels = np.where(own >= 0, result.probabilities.argmax(axis=1), -1)
+    evaluator = window_objective(prepared, window.t_ref, settings)
+    found = _summed_contrast(evaluator, result.thetas, found_labels)
+    if not ids:
+        return found, 0.0
+    given = np.array([motions[o] for o in ids], dtype=np.float64)[:, : prepared.dim]
+    onehot = (true_labels[:, None] == np.arange(len(ids))[None, :]).astype(np.float64)
+    box = search_bounds(prepared, 1.0, settings.clustering.max_depth_change, windows)
+    box[:, 0] = np.minimum(box[:, 0], given.min(axis=0))
+    box[:, 1] = np.maximum(box[:, 1], given.max(axis=0))
+    truth_result = replace(result, thetas=given, probabilities=onehot)
+    refitted = refit_velocities(truth_result, prepared, window.t_ref, settings, box, seed=seed)
+    best = max(
+        _summed_contrast(evaluator, given, true_labels),
+        _summed_contrast(evaluator, refitted.thetas, true_labels),
+    )
+    return found, best
+
+
+def recording_totals(
+    recording: Recording, seg: Any, settings: Settings, seed: int
+) -> list[list[float]]:
+    """:func:`window_totals` of every window of a spatial segmentation, as [found, truth]."""
+    truth = recording.ground_truth
+    assert truth is not None  # drawn scenes carry ground truth
+    totals = []
+    spans = recording.spans(settings.window.context)
+    for window, (index, span, inner) in zip(seg.windows, spans, strict=True):
+        first = int(index[0] - inner[0]) if len(index) else 0
+        labels = truth.labels[first : first + len(span.events)]
+        windows = len(span.depth_maps) - 1
+        found, best = window_totals(
+            window, labels, truth.motions, settings, seed=seed, windows=windows
+        )
+        totals.append([found, best])
+    return totals
+
+
+def run_scene(
+    task: tuple[str, int, list[str], dict, Path | None, int, bool],
+) -> list[dict[str, Any]]:
     """One scene segmented by every model, with each of its optimiser seeds
-    (:func:`optimiser_seeds`): a JSON row each."""
-    family, seed, models, fixed, cache, repeats = task
+    (:func:`optimiser_seeds`): a JSON row each; with ``totals`` the spatial rows also hold
+    every window's found and true total contrast (:func:`recording_totals`)."""
+    family, seed, models, fixed, cache, repeats, totals = task
     drawn = draw_scene(family, seed, **fixed)
     recording = load_scene_recording(drawn, cache)
     rows = []
@@ -140,6 +218,9 @@ def run_scene(task: tuple[str, int, list[str], dict, Path | None, int]) -> list[
         used, seg = segment_loaded(recording, settings, optimizer, seed=run_seed)
         seconds = time.perf_counter() - start
         metrics = score(used, seg, model == "spatial")
+        diagnostics = {}
+        if totals and model == "spatial":
+            diagnostics["totals"] = recording_totals(used, seg, settings, run_seed)
         rows.append(
             {
                 "family": family,
@@ -158,6 +239,7 @@ def run_scene(task: tuple[str, int, list[str], dict, Path | None, int]) -> list[
                 "windows": len(seg.windows),
                 "sensor": drawn.summary["sensor"],
                 "modifiers": asdict(drawn.modifiers),
+                **diagnostics,
             }
         )
     return rows
@@ -225,6 +307,37 @@ def table(rows: list[dict[str, Any]], models: list[str]) -> str:
     return "\n".join(lines)
 
 
+#: A recording under this accuracy counts as failed in :func:`failure_table`.
+FAILED_BELOW = 0.9
+#: The truth's total must beat the found one by this share for the search to have failed.
+TOTAL_MARGIN = 0.01
+
+
+def failure_table(rows: list[dict[str, Any]]) -> str:
+    """The Markdown table of ``--totals``: per family, the spatial runs, those under
+    :data:`FAILED_BELOW`, and of these the ones where some window's truth has a total
+    contrast over :data:`TOTAL_MARGIN` higher (the search missed it) or none does (the
+    objective prefers the wrong partition, or cannot tell); and the median ratio of the
+    truth's total to the found one over windows."""
+    lines = [
+        f"| family | runs | accuracy < {FAILED_BELOW} | search failed | objective failed "
+        "| truth / found total (median window) |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for family in dict.fromkeys(r["family"] for r in rows if "totals" in r):
+        sel = [r for r in rows if r["family"] == family and "totals" in r]
+        failed = [r for r in sel if r["accuracy"] < FAILED_BELOW]
+        search = sum(
+            any(truth > (1 + TOTAL_MARGIN) * found for found, truth in r["totals"]) for r in failed
+        )
+        ratios = [truth / found for r in sel for found, truth in r["totals"] if found > 0]
+        lines.append(
+            f"| {family} | {len(sel)} | {len(failed)} | {search} | {len(failed) - search} | "
+            f"{np.median(ratios):.3f} |"
+        )
+    return "\n".join(lines)
+
+
 def _fixed_modifiers(items: list[str]) -> dict[str, float]:
     """``--fix NAME=VALUE`` pairs as modifier settings (checked by :class:`Modifiers`)."""
     fixed = {}
@@ -260,6 +373,12 @@ def main() -> None:
         help="segment each scene with N optimiser seeds (its own, then + 1,000,000 each); "
         "the table's statistics are over every row",
     )
+    parser.add_argument(
+        "--totals",
+        action="store_true",
+        help="also record, per spatial window, the total contrast of the segmentation found "
+        "and of the truth, and print where the search or the objective failed",
+    )
     args = parser.parse_args()
     if args.per_family < 1 or args.jobs < 1 or args.optimiser_seeds < 1:
         parser.error("--per-family, --jobs and --optimiser-seeds must be >= 1")
@@ -277,7 +396,7 @@ def main() -> None:
         args.cache.mkdir(parents=True, exist_ok=True)
     done = {(r["family"], r["seed"]) for r in rows}
     tasks = [
-        (f, s, args.models, fixed, args.cache, args.optimiser_seeds)
+        (f, s, args.models, fixed, args.cache, args.optimiser_seeds, args.totals)
         for f in args.families
         for s in seeds
         if (f, s) not in done
@@ -306,6 +425,9 @@ def main() -> None:
                 }
                 write_json(args.json, payload)
     print(table(rows, args.models))
+    if args.totals:
+        print()
+        print(failure_table(rows))
 
 
 def resumed_rows(path: Path | None, split: str, fixed: dict, repeats: int) -> list[dict[str, Any]]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -35,7 +36,7 @@ def test_fixed_modifiers_are_checked():
 
 def test_a_scene_read_back_from_disk_is_scored_per_model(tmp_path):
     models = [f"spatial:{FAST}", f"planar:{FAST}"]
-    rows = generalisation.run_scene(("equal_motion", 1, models, {"noise": 0.1}, tmp_path, 1))
+    rows = generalisation.run_scene(("equal_motion", 1, models, {"noise": 0.1}, tmp_path, 1, False))
     assert [r["model"] for r in rows] == models
     assert [r["optimiser_seed"] for r in rows] == [1, 1]  # the scene's own seed
     for row in rows:
@@ -44,7 +45,9 @@ def test_a_scene_read_back_from_disk_is_scored_per_model(tmp_path):
         assert row["windows"] == 2 and row["n_motions"] == 2
     assert rows[0]["velocity_error"] is not None and rows[1]["velocity_error"] is None
     assert len(list(tmp_path.iterdir())) == 1  # the cached recording, reused by a rerun
-    again = generalisation.run_scene(("equal_motion", 1, models[:1], {"noise": 0.1}, tmp_path, 2))
+    again = generalisation.run_scene(
+        ("equal_motion", 1, models[:1], {"noise": 0.1}, tmp_path, 2, False)
+    )
     assert again[0]["accuracy"] == rows[0]["accuracy"]
     assert [r["optimiser_seed"] for r in again] == [1, 1_000_001]
     assert again[1]["seed"] == 1 and again[1]["n_events"] == again[0]["n_events"]
@@ -76,3 +79,49 @@ def test_motions_found_is_the_share_with_as_many_objects_as_motions():
     ]
     assert generalisation.motions_found(rows) == "0.50"
     assert generalisation.motions_found([{"accuracy": 1.0}]) == "-"
+
+
+def test_totals_give_each_spatial_window_the_found_and_the_true_total(tmp_path):
+    models = [f"spatial:{FAST}", f"planar:{FAST}"]
+    spatial, planar = generalisation.run_scene(("equal_motion", 1, models, {}, tmp_path, 1, True))
+    assert "totals" not in planar  # true velocities are 3-D: the spatial model's only
+    assert len(spatial["totals"]) == spatial["windows"]
+    for found, truth in spatial["totals"]:
+        assert found > 0 and truth > 0
+
+
+def test_the_truths_total_beats_a_segmentation_that_stands_still(tmp_path):
+    drawn = generalisation.draw_scene("equal_motion", 1)
+    recording = generalisation.load_scene_recording(drawn, tmp_path)
+    cfg = generalisation.compose_config("model=spatial", "n_clusters=2", *FAST.split(","))
+    settings = generalisation.check_config(cfg)
+    optimizer = generalisation.instantiate(cfg["optimizer"])
+    used, seg = generalisation.segment_loaded(recording, settings, optimizer, seed=1)
+    window = seg.windows[0]
+    still = replace(
+        window, clustering=replace(window.clustering, thetas=0 * window.clustering.thetas)
+    )
+    index, span, inner = next(used.spans(settings.window.context))
+    truth = used.ground_truth.labels[index[0] - inner[0] :][: len(span.events)]
+    motions = used.ground_truth.motions
+    found, best = generalisation.window_totals(window, truth, motions, settings, seed=1, windows=1)
+    standing, again = generalisation.window_totals(
+        still, truth, motions, settings, seed=1, windows=1
+    )
+    assert again == best  # the truth's total does not depend on what was found
+    assert standing < best and standing < found
+
+
+def test_failure_table_splits_failed_runs_by_which_total_is_higher():
+    def row(accuracy, totals):
+        return {"family": "many", "accuracy": accuracy, "totals": totals}
+
+    rows = [
+        row(0.95, [[1.0, 1.0]]),  # not failed
+        row(0.5, [[1.0, 0.9], [1.0, 1.2]]),  # one window's truth is higher: the search
+        row(0.6, [[1.0, 0.9]]),  # the found partition scores higher: the objective
+        row(0.7, [[1.0, 1.005]]),  # within the margin: not a search failure
+        {"family": "many", "accuracy": 0.1},  # a row without totals is left out
+    ]
+    table = generalisation.failure_table(rows)
+    assert "| many | 4 | 3 | 1 | 2 |" in table
