@@ -295,8 +295,9 @@ class ClusteringSettings:
     #: flow: starting membership of an event's initial cluster.
     init_confidence: float = 0.9
     #: Gaussian smoothing (voxels) of each volume before the P-step samples it; a pair
-    #: [image, depth] smooths x, y by the first, depth by the second.
-    p_step_sigma: Sigma = (1.5, 1.0)
+    #: [image, depth] smooths x, y by the first, depth by the second. Depth is the least
+    #: precise coordinate, so a membership leans on it least (docs/method.md, "P-step").
+    p_step_sigma: Sigma = (1.5, 4.0)
     #: P-step on a grid this many times coarser in x and y; needs
     #: p_step_sigma >= sqrt((stride^2 - 1) / 3).
     p_step_stride: int = 1
@@ -304,7 +305,7 @@ class ClusteringSettings:
     #: After the refit, one more P-step at the final velocities gives the labels, smoothed
     #: by this ([image, depth] voxels, full grid); null: the loop's last memberships. A
     #: window clustered alone keeps the loop's (relabelling cost approach 0.94 -> 0.92).
-    relabel_sigma: Sigma | None = (1.0, 1.0)
+    relabel_sigma: Sigma | None = (1.0, 4.0)
     #: Voxels: in the relabelling, an event whose two likeliest motions move its point less
     #: than about this far apart is weighted by the clusters' shares; null: no prior.
     relabel_prior_scale: float | None = 5.0

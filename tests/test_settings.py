@@ -18,7 +18,7 @@ from spatialseg.settings import (
 def test_the_defaults_need_no_config_file():
     settings = settings_from({})
     assert settings == Settings()
-    assert settings.window.events == 15000 and settings.clustering.p_step_sigma == (1.5, 1.0)
+    assert settings.window.events == 15000 and settings.clustering.p_step_sigma == (1.5, 4.0)
     assert settings.init.auto == ("image_flow", "tiles", "previous")
     assert (
         settings.cluster_count == 2 and settings_from({"n_clusters": "auto"}).cluster_count is None
@@ -86,6 +86,6 @@ def test_smoothing_is_one_number_or_an_image_depth_pair():
 
 def test_the_default_tree_builds_the_defaults_back():
     tree = default_tree()
-    assert tree["clustering"]["p_step_sigma"] == [1.5, 1.0]
+    assert tree["clustering"]["p_step_sigma"] == [1.5, 4.0]
     assert tree["depth"] == {"name": "recording"}
     assert settings_from(tree) == Settings()
