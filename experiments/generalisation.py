@@ -52,7 +52,12 @@ from hydra.utils import instantiate
 from spatialseg.io import read_any, write_recording
 from spatialseg.metrics import recording_metrics
 from spatialseg.pipeline import segment_loaded
-from spatialseg.points import search_bounds, spatial_velocities, window_objective
+from spatialseg.points import (
+    ModelEvaluator,
+    search_bounds,
+    spatial_velocities,
+    window_objective,
+)
 from spatialseg.recording import Recording
 from spatialseg.settings import Settings
 from spatialseg.simulate.families import (
@@ -125,7 +130,7 @@ def score(recording: Recording, seg: Any, spatial: bool) -> dict[str, Any]:
     )
 
 
-def _summed_contrast(evaluator: Any, thetas: np.ndarray, labels: np.ndarray) -> float:
+def _summed_contrast(evaluator: ModelEvaluator, thetas: np.ndarray, labels: np.ndarray) -> float:
     """The sum over clusters of each cluster's contrast at its velocity (``thetas[j]``) over
     the events labelled ``j`` (-1: none)."""
     total = 0.0
