@@ -264,6 +264,7 @@ def voxel_size(
     xy_scale: float,
     z_bins: int,
     coordinates: str = "metric",
+    depth_error: float = 0.0,
 ) -> np.ndarray:
     """Voxel size (3,) of the volume of warped events, in the grid's coordinates.
 
@@ -275,6 +276,10 @@ def voxel_size(
     median depth (``xy_scale median(1/Z) / f``). Decision: the floor keeps a flat scene (zero
     extent) valid, and finer depth voxels buy nothing because an estimated depth is far less
     precise than a pixel position; so ``z_bins`` is an upper bound on the number of depth bins.
+    ``depth_error``: the depth's relative error; the depth voxel is never finer than it at
+    the median depth (``depth_error median(Z)``, or ``depth_error median(1/Z)`` in inverse
+    depth), so that events of one object, whose depths scatter by that error, share a
+    depth voxel whatever the scene's depth range.
     """
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts):
@@ -287,9 +292,12 @@ def voxel_size(
         raise ValueError(f"xy_scale must be a positive number, got {xy_scale}")
     if int(z_bins) != z_bins or z_bins < 1:
         raise ValueError(f"z_bins must be an integer >= 1, got {z_bins}")
+    if not (np.isfinite(depth_error) and depth_error >= 0):
+        raise ValueError(f"depth_error must be a number >= 0, got {depth_error}")
     if coordinates == "image":
         inverse = 1.0 / pts[:, 2]
-        floor = xy_scale * float(np.median(inverse)) / max(camera.fx, camera.fy)
+        median_inverse = float(np.median(inverse))
+        floor = max(xy_scale / max(camera.fx, camera.fy), depth_error) * median_inverse
         step = max(float(inverse.max() - inverse.min()) / int(z_bins), floor)
         return np.array([xy_scale, xy_scale, step])
     if coordinates != "metric":
@@ -298,7 +306,7 @@ def voxel_size(
     median = float(np.median(z))
     sx = xy_scale * median / camera.fx
     sy = xy_scale * median / camera.fy
-    sz = max(float(z.max() - z.min()) / int(z_bins), min(sx, sy))
+    sz = max(float(z.max() - z.min()) / int(z_bins), min(sx, sy), depth_error * median)
     return np.array([sx, sy, sz])
 
 

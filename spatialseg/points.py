@@ -156,6 +156,7 @@ def volume_grid(
         xy_scale=settings.model.voxel_scale,
         z_bins=vol.z_bins,
         coordinates=coordinates,
+        depth_error=vol.depth_error,
     )
     projection = camera.intrinsics if coordinates == "image" else None
     return grid_around(points, size, vol.margin, vol.max_voxels, projection)

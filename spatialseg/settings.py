@@ -153,6 +153,8 @@ class VolumeSettings:
     coordinates: Literal["image", "metric"] = "image"
     #: Depth (or inverse-depth) bins over the points' range (spatial model).
     z_bins: int = 16
+    #: The depth's relative error: no depth voxel is finer than it at the median depth.
+    depth_error: float = 0.1
     #: Sorted depths split into bands where neighbours differ by > this x median depth.
     depth_gap: float = 0.1
     #: Bands with fewer events are left out of the grid (label -1); null: keep all (paper).
@@ -165,6 +167,7 @@ class VolumeSettings:
 
     def __post_init__(self) -> None:
         integer_setting(self.z_bins, "volume.z_bins", 1)
+        number_setting(self.depth_error, "volume.depth_error", 0)
         optional_positive(self.depth_gap, "volume.depth_gap")
         if self.min_band_share is not None:
             _in_range(self.min_band_share, "volume.min_band_share", 0, 1, open_low=False)

@@ -175,6 +175,18 @@ def test_voxel_size_rule():
     np.testing.assert_allclose(voxel_size(flat, CAM, xy_scale=1.0, z_bins=10), [0.02, 0.04, 0.02])
 
 
+def test_the_depth_voxel_is_never_finer_than_the_depth_error():
+    """A 10 % depth error at the median depth (2.0 m, 0.5 /m) floors the depth voxel of both
+    grids; a coarser voxel (z_bins=1) is kept."""
+    pts = np.array([[0.0, 0.0, 1.5], [0.1, 0.2, 2.0], [0.3, 0.1, 2.5]])
+    metric = voxel_size(pts, CAM, xy_scale=2.0, z_bins=10, depth_error=0.1)
+    np.testing.assert_allclose(metric, [0.04, 0.08, 0.2])
+    image = voxel_size(pts, CAM, xy_scale=2.0, z_bins=10, coordinates="image", depth_error=0.1)
+    np.testing.assert_allclose(image, [2.0, 2.0, 0.05])
+    coarse = voxel_size(pts, CAM, xy_scale=2.0, z_bins=1, coordinates="image", depth_error=0.1)
+    np.testing.assert_allclose(coarse, [2.0, 2.0, 1 / 1.5 - 1 / 2.5])
+
+
 def test_voxel_size_rejects_bad_input():
     pts = np.array([[0.0, 0.0, 1.0]])
     with pytest.raises(ValueError, match="NaN"):
@@ -187,6 +199,8 @@ def test_voxel_size_rejects_bad_input():
         voxel_size(pts, CAM, xy_scale=0.0, z_bins=10)
     with pytest.raises(ValueError, match="z_bins"):
         voxel_size(pts, CAM, xy_scale=1.0, z_bins=0)
+    with pytest.raises(ValueError, match="depth_error"):
+        voxel_size(pts, CAM, xy_scale=1.0, z_bins=10, depth_error=NAN)
 
 
 def test_lifted_points_feed_the_grid():
