@@ -385,14 +385,8 @@ REPAIR_TILE = 16.0
 POOR_RESPONSE = 0.3
 #: A group needs this many poorly explained events to seed a motion.
 MIN_GROUP = 30
-#: P-steps with equal priors that grow a motion added by n_clusters=auto from its group
-#: (:data:`MIN_GAIN` was chosen with them).
+#: P-steps with equal priors that grow a re-seeded motion's events from its group.
 RESEED_STEPS = 3
-#: A re-seeded wasted cluster's memberships grow until under this share of the events change
-#: cluster (at most 20 P-steps): three steps left half of a cart in the other cluster on the
-#: interior window (0.81 of the events right, settled 1.0; tests/test_repair.py).
-SETTLED = 0.005
-SETTLE_STEPS = 20
 
 
 def weak_cluster(thetas: np.ndarray, p: np.ndarray, repair: Repair) -> int | None:
@@ -431,74 +425,21 @@ def worst_explained(responses: np.ndarray, p: np.ndarray, xy: np.ndarray) -> np.
 
 
 def _reseeded(
-    p: np.ndarray, slot: int, group: np.ndarray, thetas: np.ndarray, repair: Repair, steps: int
+    p: np.ndarray, slot: int, group: np.ndarray, thetas: np.ndarray, repair: Repair
 ) -> np.ndarray:
     """Memberships after re-seeding ``slot`` with ``group``'s motion: the slot's volume built
     from the group alone, the others from their events, each event then goes to the motions
     by their volumes per unit of membership (equal priors), so the new motion takes every
-    event it explains better than the cluster holding it, not only the group; at most
-    ``steps`` P-steps, fewer once under :data:`SETTLED` of the events change cluster."""
+    event it explains better than the cluster holding it, not only the group."""
     seeded = p.copy()
     seeded[:, slot] = 0.0
     seeded /= np.maximum(seeded.sum(axis=1, keepdims=True), 1e-300)
     seeded[group] = 0.0
     seeded[group, slot] = 1.0
-    for _ in range(steps):  # the new motion's events grow from the group outwards
+    for _ in range(RESEED_STEPS):  # the new motion's events grow from the group outwards
         mass = np.maximum(seeded.sum(axis=0), 1e-300)
-        grown = update_memberships(repair.responses(thetas, seeded) / mass)
-        changed = np.mean(grown.argmax(axis=1) != seeded.argmax(axis=1))
-        seeded = grown
-        if changed < SETTLED:
-            break
+        seeded = update_memberships(repair.responses(thetas, seeded) / mass)
     return seeded
-
-
-def repair_wasted(result: ClusteringResult, repair: Repair, *, seed: int) -> ClusteringResult:
-    """A fixed number of motions with none wasted: while a cluster wastes its slot
-    (:func:`weak_cluster`: it duplicates another's motion or is nobody's likeliest), re-seed
-    it from the worst-explained coherent group of the others' events
-    (:func:`worst_explained`) and run the loop again; kept when the total contrast rises
-    and no cluster is wasted in the result, at most once per cluster. A cluster still
-    wasted is logged (and the run's summary names an object without events).
-
-    Decision: only a wasted slot is moved. Session 25's moves also split the two nearest
-    motions when none was wasted, and merged the wrong objects where motions are many
-    (docs/results.md, "Split-and-merge moves"). Kept on the total alone, a re-seeded slot
-    took part of a large object where a small one was missed (`small_object`), leaving
-    two clusters on one motion again (docs/results.md, "A wasted cluster re-seeded").
-    """
-    seeds = iter(np.random.default_rng(seed).integers(0, 2**31 - 1, size=2 * len(result.thetas)))
-    for _ in range(len(result.thetas)):
-        slot = weak_cluster(result.thetas, result.probabilities, repair)
-        if slot is None:
-            return result
-        keep = np.delete(np.arange(len(result.thetas)), slot)
-        rest = result.probabilities[:, keep]
-        rest = rest / np.maximum(rest.sum(axis=1, keepdims=True), 1e-300)
-        group = worst_explained(repair.responses(result.thetas[keep], rest), rest, repair.xy)
-        if group is None:
-            break
-        thetas = result.thetas.copy()
-        thetas[slot] = repair.fit(group, int(next(seeds)))
-        p = _reseeded(result.probabilities, slot, group, thetas, repair, SETTLE_STEPS)
-        candidate = repair.run(thetas, p, int(next(seeds)))
-        log.info(
-            "cluster %d wasted, re-seeded from %d events: total contrast %.6g -> %.6g",
-            slot,
-            len(group),
-            result.total,
-            candidate.total,
-        )
-        if (
-            candidate.total <= result.total
-            or weak_cluster(candidate.thetas, candidate.probabilities, repair) is not None
-        ):
-            break
-        result = candidate
-    slot = weak_cluster(result.thetas, result.probabilities, repair)
-    if slot is not None:
-        log.info("cluster %d of %d ends wasted (no motion of its own)", slot, len(result.thetas))
-    return result
 
 
 #: A motion added by :func:`grow_clusters` must raise the sharpness by this share (5 % until
@@ -552,9 +493,7 @@ def grow_clusters(
         k = len(result.thetas)
         thetas = np.vstack([result.thetas, repair.fit(group, int(next(seeds)))])
         p = np.hstack([result.probabilities, np.zeros((len(result.probabilities), 1))])
-        candidate = repair.run(
-            thetas, _reseeded(p, k, group, thetas, repair, RESEED_STEPS), int(next(seeds))
-        )
+        candidate = repair.run(thetas, _reseeded(p, k, group, thetas, repair), int(next(seeds)))
         gain = (candidate.sharpness - result.sharpness) / max(abs(result.sharpness), 1e-300)
         wasted = weak_cluster(candidate.thetas, candidate.probabilities, repair)
         log.info(

@@ -30,7 +30,6 @@ from spatialseg.clustering import (
     iterative_clustering,
     maximize_contrast,
     p_step,
-    repair_wasted,
     update_memberships,
 )
 from spatialseg.depth import make_depth_source
@@ -127,13 +126,12 @@ def segment_window(
 ) -> WindowResult:
     """Segment one window (two depth maps) into ``n_clusters`` motions; with
     ``init.method=auto``, from each start of ``init.auto``, keeping the highest total
-    contrast, then re-seeding a wasted cluster of the kept result
-    (:func:`~spatialseg.clustering.repair_wasted`). ``previous`` (K x the model's
-    components): the preceding window's final velocities, the ``previous`` start (skipped
-    when None). ``progress``: the window's name in a DEBUG line per iteration and per start
-    (None: no such lines). ``inner``: the window's own events when ``window`` is a span with
-    context windows (``inner`` of :meth:`~spatialseg.recording.Recording.spans`; None: every
-    event); only their labels are smoothed, as each context window's own span labels it."""
+    contrast. ``previous`` (K x the model's components): the preceding window's final
+    velocities, the ``previous`` start (skipped when None). ``progress``: the window's name
+    in a DEBUG line per iteration and per start (None: no such lines). ``inner``: the
+    window's own events when ``window`` is a span with context windows (``inner`` of
+    :meth:`~spatialseg.recording.Recording.spans`; None: every event); only their labels are
+    smoothed, as each context window's own span labels it."""
     wanted = settings.cluster_count
     k = wanted or (1 if previous is None else len(previous))
     starts = [s for s in init_candidates(settings.init) if s != PREVIOUS or previous is not None]
@@ -153,7 +151,7 @@ def segment_window(
         prepared, 1.0, clustering.max_depth_change, windows=len(window.depth_maps) - 1
     )
     objectives: tuple[ModelEvaluator, StepStage | None] | None = None
-    kept: tuple[ClusteringResult, Repair, motion_init.InitResult, str] | None = None
+    kept: tuple[ClusteringResult, motion_init.InitResult, str] | None = None
 
     def seed_motion(group: np.ndarray, group_seed: int, box: np.ndarray) -> np.ndarray:
         """The image_flow start's single motion of a group of the points, in ``box``."""
@@ -166,11 +164,8 @@ def segment_window(
         init = initialise(window, part, flow, 1, box, seed=group_seed)
         return init.thetas[0, : prepared.dim]
 
-    def cluster(
-        init: motion_init.InitResult, method: str, box: np.ndarray
-    ) -> tuple[ClusteringResult, Repair]:
-        """Algorithm 1 from ``init`` in the search box ``box`` (``method``: the start's name),
-        and its repair moves."""
+    def cluster(init: motion_init.InitResult, method: str, box: np.ndarray) -> ClusteringResult:
+        """Algorithm 1 from ``init`` in the search box ``box`` (``method``: the start's name)."""
         assert objectives is not None  # built before the first clustering
         return _cluster_from(
             init,
@@ -209,23 +204,20 @@ def segment_window(
         start = time.perf_counter()
         if objectives is None:  # after the first start, so a tile start's volumes are freed
             objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
-        result, repair = cluster(init, method, bounds)
+        result = cluster(init, method, bounds)
         timings["cluster"] += time.perf_counter() - start
         if progress is not None and len(starts) > 1:
             log.debug("%s, start %s: total contrast %.6g", progress, method, result.total)
         if kept is None or _better(result, kept[0], auto=wanted is None):
-            kept = (result, repair, init, method)
+            kept = (result, init, method)
     assert kept is not None and objectives is not None  # init_candidates names a start
-    result, repair, init, method = kept
+    result, init, method = kept
     start = time.perf_counter()
-    if wanted is not None:  # the kept start only: repaired after every start, a losing
-        # start's repair could beat the right one (docs/results.md, "A wasted cluster ...")
-        result = repair_wasted(result, repair, seed=seed + 1)
     while (wider := widened_box(result.thetas, bounds, ceiling)) is not None:
         start_wider = previous_init(
             result.thetas, prepared, objectives[0], clustering, wider, alone=alone
         )
-        regrown, _ = cluster(start_wider, f"{method}, box grown", wider)
+        regrown = cluster(start_wider, f"{method}, box grown", wider)
         kept_wider = _better(regrown, result, auto=wanted is None)
         if progress is not None:
             log.debug(
@@ -396,14 +388,13 @@ def _cluster_from(
     xy: np.ndarray,
     seed_motion: Any,
     auto: bool = False,
-) -> tuple[ClusteringResult, Repair]:
+) -> ClusteringResult:
     """Algorithm 1 from one start: its memberships, then the configured loop (``alone``: the
     window has no neighbouring windows, :func:`~spatialseg.points.p_step_settings`); with
     ``auto`` (``n_clusters=auto``) the clusters then grow and shrink
     (:func:`spatialseg.clustering.grow_clusters`, up to ``clustering.max_clusters``;
     ``xy``: the points' image positions; ``seed_motion(points, seed)``: the motion of a
-    group of points). Also the split-and-merge moves on this window
-    (:class:`~spatialseg.clustering.Repair`), for the kept start's wasted clusters."""
+    group of points)."""
     sigmas, stride = p_step_settings(clustering, alone=alone)
     init_p = initial_memberships(
         prepared.grid.coordinates(prepared.points),
@@ -433,6 +424,8 @@ def _cluster_from(
         )
 
     result = run(init.thetas[:, : prepared.dim], init_p, seed)
+    if not auto:
+        return result
     repair = Repair(
         run=run,
         responses=lambda thetas, p: cluster_responses(evaluator, thetas, p, sigmas, stride)[0],
@@ -440,10 +433,7 @@ def _cluster_from(
         separation=lambda a, b: motion_separation(prepared, a, b),
         xy=xy,
     )
-    if not auto:
-        return result, repair
-    grown = grow_clusters(result, repair, seed=seed + 1, max_clusters=clustering.max_clusters)
-    return grown, repair
+    return grow_clusters(result, repair, seed=seed + 1, max_clusters=clustering.max_clusters)
 
 
 def _better(result: ClusteringResult, than: ClusteringResult, *, auto: bool) -> bool:
