@@ -152,9 +152,9 @@ def _static_errors_and_accuracy(
 def test_context_clusters_each_window_with_its_neighbours_and_keeps_its_own_labels():
     """window.context=1 (the default): the middle window is clustered on all 9,000 events,
     the outer ones on 6,000; each keeps the labels of its own events. In these short windows
-    the static scene's velocity is ill-determined alone (window.context=0: errors 1.24,
-    4.08, 3.33; mean accuracy 0.71) and pinned down with the neighbours (0.30, 0.05, 0.12;
-    0.97)."""
+    the static scene's velocity is ill-determined alone (window.context=0: errors 2.36,
+    2.60, 0.19; mean accuracy 0.87) and pinned down with the neighbours (0.13, 0.05, 0.08;
+    0.97; measured at session 35's defaults)."""
     errors, accuracy, seg = _static_errors_and_accuracy("ego_street", 3000)
     assert [len(i) for i in seg.indices] == [3000, 3000, 3000]
     assert [w.prepared.valid.size for w in seg.windows] == [6000, 9000, 6000]
@@ -169,18 +169,19 @@ def test_context_clusters_each_window_with_its_neighbours_and_keeps_its_own_labe
 def test_defaults_separate_a_walking_camera_from_a_person_crossing():
     """ego_forward in three windows of 6,000 events: +preset=one_window's image-flow start
     cannot tell the corridor's expansion from the person crossing it, while the defaults
-    (both starts, occlusion-edge events steering, context windows) find both. Measured:
-    mean accuracy 0.62 -> 0.69; static velocity errors 0.90, 1.66, 0.99 -> 1.60, 0.58, 1.50
-    (the middle window has neighbours on both sides). The background filter (denoise, on by
-    default since session 14, chosen on the yardstick's dev seeds) costs this shipped scene:
-    it leaves 21 % of its signal events out of the fit, and with it off the defaults reached
-    0.90 and errors 0.06, 0.39, 0.50. So does the P-step's depth blur of 4 voxels (session
-    34, chosen on the dev seeds): with session 33's [1.5, 1] the defaults reached 0.83."""
+    (both starts, occlusion-edge events steering, context windows) find both. Measured at
+    session 35's defaults: mean accuracy 0.60 -> 0.80; static velocity errors 3.98, 1.57,
+    1.10 -> 0.53, 0.08, 0.32 (the middle window has neighbours on both sides). The
+    background filter (denoise, on by default since session 14, chosen on the yardstick's
+    dev seeds) leaves 21 % of this shipped scene's signal events out of the fit; with it off
+    the defaults reach 0.83. Session 34's P-step depth blur of 4 voxels had cost it 0.83 ->
+    0.69 (with session 33's [1.5, 1]); the depth voxel's floor at a 10 % depth error (session
+    35) brought it back: with ``volume.depth_error=0`` the defaults reach 0.69."""
     errors, accuracy, _ = _static_errors_and_accuracy("ego_forward", 6000)
     one_errors, one_accuracy, _ = _static_errors_and_accuracy(
         "ego_forward", 6000, "+preset=one_window"
     )
-    assert accuracy > one_accuracy + 0.05
+    assert accuracy > one_accuracy + 0.1
     assert errors[1] < 0.5 * one_errors[1]
 
 
