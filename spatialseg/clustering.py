@@ -18,27 +18,27 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, TypeVar
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 __all__ = [
+    "MIN_GAIN",
+    "MIN_SHARE",
     "ClusterEvaluator",
     "ClusteringResult",
     "ConvergenceRules",
     "IterationRecord",
-    "Repair",
     "StepStage",
     "cluster_responses",
-    "grow_clusters",
+    "count_motions",
     "initial_memberships",
     "iterative_clustering",
     "maximize_contrast",
     "p_step",
     "update_memberships",
     "weak_cluster",
-    "worst_explained",
 ]
 
 log = logging.getLogger(__name__)
@@ -357,155 +357,74 @@ def iterative_clustering(
     return ClusteringResult(thetas, p, values.copy(), history, converged, reason)
 
 
-@dataclass(frozen=True)
-class Repair:
-    """What :func:`grow_clusters` needs of a window beyond the loop.
-
-    ``run(thetas, p, seed)``: the loop from velocities and memberships; ``responses(thetas,
-    p)``: each event's P-step response to each cluster (N x K); ``fit(events, seed)``: the
-    motion of those events alone (a local estimate, e.g. their flows: maximising the
-    contrast of a small group collapses it); ``separation(a, b)``: how far apart (voxels) two
-    velocities move the events over the window; ``xy``: the events' image positions (N x 2).
-    A cluster holding under ``min_share`` of the memberships is empty; two whose motions
-    move the events less than a voxel apart are one.
-    """
-
-    run: Callable[[np.ndarray, np.ndarray, int], ClusteringResult]
-    responses: Callable[[np.ndarray, np.ndarray], np.ndarray]
-    fit: Callable[[np.ndarray, int], np.ndarray]
-    separation: Callable[[np.ndarray, np.ndarray], float]
-    xy: np.ndarray
-    min_share: float = 0.01
+#: A cluster that is the likeliest for under this share of the events is empty (mean
+#: memberships hide a collapse: an empty cluster keeps a few percent of every event's).
+MIN_SHARE = 0.01
 
 
-#: Pixels of the image tiles a poorly explained group is gathered in (with its 8 neighbours).
-REPAIR_TILE = 16.0
-#: An event is poorly explained when its own cluster responds to it with less than this
-#: share of the cluster's 90th-percentile response (it is blurred under that motion).
-POOR_RESPONSE = 0.3
-#: A group needs this many poorly explained events to seed a motion.
-MIN_GROUP = 30
-#: P-steps with equal priors that grow a re-seeded motion's events from its group.
-RESEED_STEPS = 3
-
-
-def weak_cluster(thetas: np.ndarray, p: np.ndarray, repair: Repair) -> int | None:
-    """A cluster that wastes its slot: the smaller of two whose motions coincide (less than
-    a voxel apart), else one that is the likeliest for under ``min_share`` of the events;
-    None if none. (Mean memberships hide a collapse: an empty cluster keeps a few percent of
-    every event's membership.)"""
+def weak_cluster(
+    thetas: np.ndarray,
+    p: np.ndarray,
+    separation: Callable[[np.ndarray, np.ndarray], float],
+    min_share: float = MIN_SHARE,
+) -> int | None:
+    """A cluster that wastes its slot: the smaller of two whose motions coincide (they move
+    the events less than a voxel apart, ``separation(a, b)`` in voxels), else one that is
+    the likeliest for under ``min_share`` of the events; None if none."""
     shares = np.bincount(p.argmax(axis=1), minlength=p.shape[1]) / max(len(p), 1)
     for j in range(len(thetas)):
         for k in range(j + 1, len(thetas)):
-            if repair.separation(thetas[j], thetas[k]) < 1.0:
+            if separation(thetas[j], thetas[k]) < 1.0:
                 return j if shares[j] < shares[k] else k
     smallest = int(np.argmin(shares))
-    return smallest if shares[smallest] < repair.min_share else None
+    return smallest if shares[smallest] < min_share else None
 
 
-def worst_explained(responses: np.ndarray, p: np.ndarray, xy: np.ndarray) -> np.ndarray | None:
-    """The largest spatially coherent group of poorly explained events: those whose own
-    cluster responds with under :data:`POOR_RESPONSE` of its 90th-percentile response,
-    gathered in the image tile holding most of them and its 8 neighbours (event indices);
-    None when fewer than :data:`MIN_GROUP`."""
-    labels = p.argmax(axis=1)
-    own = responses[np.arange(len(labels)), labels]
-    reference = np.zeros(p.shape[1])
-    for j in range(p.shape[1]):
-        mine = own[labels == j]
-        reference[j] = np.percentile(mine, 90) if len(mine) else 0.0
-    poor = np.flatnonzero(own < POOR_RESPONSE * reference[labels])
-    if len(poor) < MIN_GROUP:
-        return None
-    cells = np.floor(xy[poor] / REPAIR_TILE).astype(np.int64)
-    found, counts = np.unique(cells, axis=0, return_counts=True)
-    centre = found[np.argmax(counts)]
-    group = poor[np.all(np.abs(cells - centre) <= 1, axis=1)]
-    return group if len(group) >= MIN_GROUP else None
-
-
-def _reseeded(
-    p: np.ndarray, slot: int, group: np.ndarray, thetas: np.ndarray, repair: Repair
-) -> np.ndarray:
-    """Memberships after re-seeding ``slot`` with ``group``'s motion: the slot's volume built
-    from the group alone, the others from their events, each event then goes to the motions
-    by their volumes per unit of membership (equal priors), so the new motion takes every
-    event it explains better than the cluster holding it, not only the group."""
-    seeded = p.copy()
-    seeded[:, slot] = 0.0
-    seeded /= np.maximum(seeded.sum(axis=1, keepdims=True), 1e-300)
-    seeded[group] = 0.0
-    seeded[group, slot] = 1.0
-    for _ in range(RESEED_STEPS):  # the new motion's events grow from the group outwards
-        mass = np.maximum(seeded.sum(axis=0), 1e-300)
-        seeded = update_memberships(repair.responses(thetas, seeded) / mass)
-    return seeded
-
-
-#: A motion added by :func:`grow_clusters` must raise the sharpness by this share (5 % until
-#: session 24; 40 % found the true count on 6 of 27 dev and 10 of 27 held-out recordings
-#: against 2 and 3, docs/results.md).
+#: One motion more must raise the sharpness by this share (5 % until session 24 over-segmented
+#: nearly every scene; docs/results.md).
 MIN_GAIN = 0.40
 
-
-def _without(result: ClusteringResult, slot: int, repair: Repair, seed: int) -> ClusteringResult:
-    """The loop run again without cluster ``slot`` (its memberships shared by the others)."""
-    keep = np.delete(np.arange(len(result.thetas)), slot)
-    p = result.probabilities[:, keep]
-    p = p / np.maximum(p.sum(axis=1, keepdims=True), 1e-300)
-    return repair.run(
-        result.thetas[keep], np.where(p.sum(axis=1, keepdims=True) > 0, p, 1.0 / len(keep)), seed
-    )
+#: What :func:`count_motions` fits: a window's segmentation with a given number of motions.
+Fitted = TypeVar("Fitted")
 
 
-def grow_clusters(
-    result: ClusteringResult,
-    repair: Repair,
+def count_motions(
+    fit: Callable[[int], Fitted],
+    clustering_of: Callable[[Fitted], ClusteringResult],
+    separation: Callable[[np.ndarray, np.ndarray], float],
     *,
-    seed: int,
     max_clusters: int,
     min_gain: float = MIN_GAIN,
-) -> ClusteringResult:
-    """The number of motions from the data: while a cluster wastes its slot
-    (:func:`weak_cluster`) drop it; then add a motion seeded from the worst-explained
-    coherent group of events (:func:`worst_explained`) while one pays: the loop run with it
-    must raise the sharpness (:attr:`ClusteringResult.sharpness`) by at least ``min_gain``
-    of it and leave no cluster wasted. At most ``max_clusters``.
+) -> Fitted:
+    """The number of motions from the data: the window fitted with 1, 2, ... motions
+    (``fit(k)``, from every start), one more kept while it raises the sharpness
+    (:attr:`ClusteringResult.sharpness`) by at least ``min_gain`` and leaves no cluster
+    weak (:func:`weak_cluster`); at most ``max_clusters``.
 
-    Decision: the sum of contrasts is quadratic in each cluster's mass, so it falls when one
-    motion's events are split in two; the sharpness does not change then, and rises by the
-    share of events one more motion brings into focus. The gain required is the label cost
-    of a motion, relative so that it needs no scale (docs/method.md, "The number of
-    motions").
-    """
-    seeds = iter(np.random.default_rng(seed).integers(0, 2**31 - 1, size=4 * max_clusters + 4))
-    while len(result.thetas) > 1:
-        slot = weak_cluster(result.thetas, result.probabilities, repair)
-        if slot is None:
-            break
-        result = _without(result, slot, repair, int(next(seeds)))
-    while len(result.thetas) < max_clusters:
-        group = worst_explained(
-            repair.responses(result.thetas, result.probabilities), result.probabilities, repair.xy
+    Decision: the sum of contrasts is quadratic in each cluster's mass, so it falls when
+    one motion's events are split in two; the sharpness does not change then, and rises by
+    the share of events one more motion brings into focus, so its gain is the label cost
+    of a motion, relative and without a scale. Each count is fitted from the starts, as a
+    fixed number is: growing one fit motion by motion (until session 36) kept the first
+    motion's compromise between objects, often a spurious motion in depth, and added
+    clusters around it (docs/method.md, "The number of motions")."""
+    kept = fit(1)
+    for k in range(2, max_clusters + 1):
+        more = fit(k)
+        fewer_result, more_result = clustering_of(kept), clustering_of(more)
+        gain = (more_result.sharpness - fewer_result.sharpness) / max(
+            abs(fewer_result.sharpness), 1e-300
         )
-        if group is None:
-            break
-        k = len(result.thetas)
-        thetas = np.vstack([result.thetas, repair.fit(group, int(next(seeds)))])
-        p = np.hstack([result.probabilities, np.zeros((len(result.probabilities), 1))])
-        candidate = repair.run(thetas, _reseeded(p, k, group, thetas, repair), int(next(seeds)))
-        gain = (candidate.sharpness - result.sharpness) / max(abs(result.sharpness), 1e-300)
-        wasted = weak_cluster(candidate.thetas, candidate.probabilities, repair)
+        wasted = weak_cluster(more_result.thetas, more_result.probabilities, separation)
         log.info(
-            "motion %d seeded from %d events: sharpness %.6g -> %.6g (%+.1f %%)%s",
-            k + 1,
-            len(group),
-            result.sharpness,
-            candidate.sharpness,
+            "%d motions: sharpness %.6g -> %.6g (%+.1f %%)%s",
+            k,
+            fewer_result.sharpness,
+            more_result.sharpness,
             100 * gain,
-            "" if wasted is None else f", cluster {wasted} wasted",
+            "" if wasted is None else f", cluster {wasted} weak",
         )
         if gain < min_gain or wasted is not None:
             break
-        result = candidate
-    return result
+        kept = more
+    return kept

@@ -22,10 +22,9 @@ from spatialseg.clustering import (
     ClusteringResult,
     ConvergenceRules,
     IterationRecord,
-    Repair,
     StepStage,
     cluster_responses,
-    grow_clusters,
+    count_motions,
     initial_memberships,
     iterative_clustering,
     maximize_contrast,
@@ -124,26 +123,24 @@ def segment_window(
     progress: str | None = None,
     inner: np.ndarray | None = None,
 ) -> WindowResult:
-    """Segment one window (two depth maps) into ``n_clusters`` motions; with
-    ``init.method=auto``, from each start of ``init.auto``, keeping the highest total
-    contrast. ``previous`` (K x the model's components): the preceding window's final
-    velocities, the ``previous`` start (skipped when None). ``progress``: the window's name
+    """Segment one window (two depth maps) into ``n_clusters`` motions (``auto``: as many
+    as :func:`~spatialseg.clustering.count_motions` finds); with ``init.method=auto``, from
+    each start of ``init.auto``, keeping the highest total contrast. ``previous`` (K x the
+    model's components): the preceding window's final velocities, the ``previous`` start
+    (skipped when None, or with another K). ``progress``: the window's name
     in a DEBUG line per iteration and per start (None: no such lines). ``inner``: the
     window's own events when ``window`` is a span with context windows (``inner`` of
     :meth:`~spatialseg.recording.Recording.spans`; None: every event); only their labels are
     smoothed, as each context window's own span labels it."""
     wanted = settings.cluster_count
-    k = wanted or (1 if previous is None else len(previous))
+    k = wanted or 1  # n_clusters=auto fits one motion first
     starts = [s for s in init_candidates(settings.init) if s != PREVIOUS or previous is not None]
-    if wanted is None and previous is not None:  # auto: the window before's motions, grown
-        starts = [PREVIOUS]
     alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
     timings: dict[str, float] = {}
     start = time.perf_counter()
     prepared = prepare(window, settings)
     check_events_per_cluster(prepared.points.shape[0], k, window.name)
     t_ref = reference_time(prepared.t, settings.volume.t_ref)
-    xy = np.column_stack([window.events.x, window.events.y])[prepared.valid].astype(np.float64)
     timings["prepare"] = time.perf_counter() - start
     clustering = settings.clustering
     bounds = search_bounds(prepared, clustering.max_displacement, clustering.max_depth_change)
@@ -151,18 +148,6 @@ def segment_window(
         prepared, 1.0, clustering.max_depth_change, windows=len(window.depth_maps) - 1
     )
     objectives: tuple[ModelEvaluator, StepStage | None] | None = None
-    kept: tuple[ClusteringResult, motion_init.InitResult, str] | None = None
-
-    def seed_motion(group: np.ndarray, group_seed: int, box: np.ndarray) -> np.ndarray:
-        """The image_flow start's single motion of a group of the points, in ``box``."""
-        valid = np.zeros(len(window.events), dtype=bool)
-        valid[np.flatnonzero(prepared.valid)[group]] = True
-        part = replace(
-            prepared, points=prepared.points[group], t=prepared.t[group], valid=valid, rest=None
-        )
-        flow = _with_start(settings, "image_flow")
-        init = initialise(window, part, flow, 1, box, seed=group_seed)
-        return init.thetas[0, : prepared.dim]
 
     def cluster(init: motion_init.InitResult, method: str, box: np.ndarray) -> ClusteringResult:
         """Algorithm 1 from ``init`` in the search box ``box`` (``method``: the start's name)."""
@@ -177,40 +162,63 @@ def segment_window(
             seed=seed,
             on_iteration=_iteration_logger(progress, method, on_iteration),
             alone=alone,
-            xy=xy,
-            seed_motion=lambda group, group_seed: seed_motion(group, group_seed, box),
-            auto=wanted is None,
         )
 
+    def separation(a: np.ndarray, b: np.ndarray) -> float:
+        """How far apart (voxels) two velocities move this window's points."""
+        return motion_separation(prepared, a, b)
+
     timings["init"] = timings["cluster"] = 0.0
-    for method in starts:
-        start = time.perf_counter()
-        if method == PREVIOUS:
-            if objectives is None:
+
+    def best_start(k: int) -> tuple[ClusteringResult, motion_init.InitResult, str]:
+        """The loop from each start with ``k`` motions (``previous`` only where the window
+        before found ``k``), the highest total contrast kept."""
+        nonlocal objectives
+        best: tuple[ClusteringResult, motion_init.InitResult, str] | None = None
+        for method in starts:
+            if method == PREVIOUS and (previous is None or len(previous) != k):
+                continue
+            start = time.perf_counter()
+            if method == PREVIOUS:
+                if objectives is None:
+                    objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
+                assert previous is not None  # skipped above otherwise
+                init = previous_init(
+                    previous, prepared, objectives[0], clustering, bounds, alone=alone
+                )
+            else:
+                init = initialise(
+                    window,
+                    prepared,
+                    _with_start(settings, method),
+                    k,
+                    bounds,
+                    seed=seed,
+                    optimizer=optimizer,
+                )
+            timings["init"] += time.perf_counter() - start
+            start = time.perf_counter()
+            if objectives is None:  # after the first start, so a tile start's volumes are freed
                 objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
-            assert previous is not None  # starts keeps PREVIOUS only with a previous window
-            init = previous_init(previous, prepared, objectives[0], clustering, bounds, alone=alone)
-        else:
-            init = initialise(
-                window,
-                prepared,
-                _with_start(settings, method),
-                k,
-                bounds,
-                seed=seed,
-                optimizer=optimizer,
-            )
-        timings["init"] += time.perf_counter() - start
-        start = time.perf_counter()
-        if objectives is None:  # after the first start, so a tile start's volumes are freed
-            objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
-        result = cluster(init, method, bounds)
-        timings["cluster"] += time.perf_counter() - start
-        if progress is not None and len(starts) > 1:
-            log.debug("%s, start %s: total contrast %.6g", progress, method, result.total)
-        if kept is None or _better(result, kept[0], auto=wanted is None):
-            kept = (result, init, method)
-    assert kept is not None and objectives is not None  # init_candidates names a start
+            result = cluster(init, method, bounds)
+            timings["cluster"] += time.perf_counter() - start
+            if progress is not None and len(starts) > 1:
+                log.debug("%s, start %s: total contrast %.6g", progress, method, result.total)
+            if best is None or _better(result, best[0], auto=False):
+                best = (result, init, method)
+        assert best is not None  # init_candidates names a start
+        return best
+
+    if wanted is None:
+        kept = count_motions(
+            best_start,
+            lambda found: found[0],
+            separation,
+            max_clusters=clustering.max_clusters,
+        )
+    else:
+        kept = best_start(wanted)
+    assert objectives is not None
     result, init, method = kept
     start = time.perf_counter()
     while (wider := widened_box(result.thetas, bounds, ceiling)) is not None:
@@ -385,16 +393,9 @@ def _cluster_from(
     seed: int,
     on_iteration: Any,
     alone: bool,
-    xy: np.ndarray,
-    seed_motion: Any,
-    auto: bool = False,
 ) -> ClusteringResult:
     """Algorithm 1 from one start: its memberships, then the configured loop (``alone``: the
-    window has no neighbouring windows, :func:`~spatialseg.points.p_step_settings`); with
-    ``auto`` (``n_clusters=auto``) the clusters then grow and shrink
-    (:func:`spatialseg.clustering.grow_clusters`, up to ``clustering.max_clusters``;
-    ``xy``: the points' image positions; ``seed_motion(points, seed)``: the motion of a
-    group of points)."""
+    window has no neighbouring windows, :func:`~spatialseg.points.p_step_settings`)."""
     sigmas, stride = p_step_settings(clustering, alone=alone)
     init_p = initial_memberships(
         prepared.grid.coordinates(prepared.points),
@@ -405,35 +406,20 @@ def _cluster_from(
         confidence=clustering.init_confidence,
     )
     evaluator, step = objectives
-    rules = _rules(clustering)
-
-    def run(thetas: np.ndarray, p: np.ndarray, run_seed: int) -> ClusteringResult:
-        return iterative_clustering(
-            evaluator,
-            optimizer,
-            thetas,
-            p,
-            bounds,
-            rules=rules,
-            evals_per_step=clustering.evals_per_step,
-            p_step_sigma=sigmas,
-            p_step_stride=stride,
-            seed=run_seed,
-            on_iteration=on_iteration,
-            step=step,
-        )
-
-    result = run(init.thetas[:, : prepared.dim], init_p, seed)
-    if not auto:
-        return result
-    repair = Repair(
-        run=run,
-        responses=lambda thetas, p: cluster_responses(evaluator, thetas, p, sigmas, stride)[0],
-        fit=seed_motion,
-        separation=lambda a, b: motion_separation(prepared, a, b),
-        xy=xy,
+    return iterative_clustering(
+        evaluator,
+        optimizer,
+        init.thetas[:, : prepared.dim],
+        init_p,
+        bounds,
+        rules=_rules(clustering),
+        evals_per_step=clustering.evals_per_step,
+        p_step_sigma=sigmas,
+        p_step_stride=stride,
+        seed=seed,
+        on_iteration=on_iteration,
+        step=step,
     )
-    return grow_clusters(result, repair, seed=seed + 1, max_clusters=clustering.max_clusters)
 
 
 def _better(result: ClusteringResult, than: ClusteringResult, *, auto: bool) -> bool:
