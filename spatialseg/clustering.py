@@ -381,7 +381,7 @@ def weak_cluster(
 
 
 #: One motion more must raise the sharpness by this share (5 % until session 24 over-segmented
-#: nearly every scene; docs/results.md).
+#: nearly every scene; 25 % lowered the dev split's accuracy in session 36: docs/results.md).
 MIN_GAIN = 0.40
 
 #: What :func:`count_motions` fits: a window's segmentation with a given number of motions.
