@@ -204,7 +204,7 @@ def segment_window(
             timings["cluster"] += time.perf_counter() - start
             if progress is not None and len(starts) > 1:
                 log.debug("%s, start %s: total contrast %.6g", progress, method, result.total)
-            if best is None or _better(result, best[0], auto=False):
+            if best is None or result.total > best[0].total:
                 best = (result, init, method)
         assert best is not None  # init_candidates names a start
         return best
@@ -423,8 +423,9 @@ def _cluster_from(
 
 
 def _better(result: ClusteringResult, than: ClusteringResult, *, auto: bool) -> bool:
-    """Whether one start's result beats another's: by the total contrast, or with
-    n_clusters=auto (different numbers of clusters) by the sharpness."""
+    """Whether the loop run again in a grown search box beats the result kept: by the total
+    contrast, or with n_clusters=auto by the sharpness, which chose its number of motions
+    (:func:`~spatialseg.clustering.count_motions`)."""
     if auto:
         return result.sharpness > than.sharpness
     return result.total > than.total
