@@ -36,6 +36,20 @@ def test_image_tiles_number_dense_tiles_and_drop_sparse_ones():
         image_tiles(xy, 0.0, 2)
 
 
+def test_image_tiles_are_numbered_in_row_order_of_their_cells():
+    """Tiles numbered as the cells' rows sort (x, then y), negative cells and none too."""
+    xy = np.random.default_rng(0).uniform(-40, 300, (5000, 2))
+    tile, counts = image_tiles(xy, 16.0, 3)
+    cells = np.floor(xy / 16.0).astype(np.int64)
+    rows, inverse, every = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    dense = every >= 3
+    np.testing.assert_array_equal(counts, every[dense])
+    kept = tile >= 0
+    np.testing.assert_array_equal(kept, dense[inverse.reshape(-1)])
+    np.testing.assert_array_equal(cells[kept], rows[dense][tile[kept]])
+    assert image_tiles(np.zeros((0, 2)), 16.0, 3)[0].shape == (0,)
+
+
 def test_greedy_cover_prefers_distinct_explanations():
     """Tiles 0-2 are explained by hypothesis 0 or 1 (near duplicates), tiles 3-4 only by 2."""
     scores = np.array(
