@@ -8,7 +8,7 @@ the warp's reference time and :class:`ModelEvaluator`, one cluster's contrast of
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,7 +24,6 @@ from spatialseg.volume import VolumeObjective
 __all__ = [
     "ModelEvaluator",
     "Prepared",
-    "fit_sample",
     "fit_support",
     "off_edge_events",
     "p_step_settings",
@@ -103,41 +102,6 @@ def prepare(window: Recording, settings: Settings) -> Prepared:
     on_edge = lifted.on_edge[lifted.valid][fit]
     rest = (lifted.points[~fit], lifted.t[~fit], rest_valid)
     return Prepared(points, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
-
-
-def fit_sample(prepared: Prepared, limit: int | None, seed: int) -> Prepared:
-    """``prepared`` fitted on at most ``limit`` of its points drawn with ``seed`` (None: all);
-    the others join ``rest``, labelled once at the end from the fitted motions. The grid and
-    the search extent stay those of every point.
-
-    Decision: a velocity is three numbers and the contrast's maximum is set by the motion,
-    not by the event count, so the loop's theta- and P-steps and the refit run on one
-    sample, and their cost stops growing with the window; every event is still labelled,
-    by one pass over the sample's volumes (docs/performance.md)."""
-    n = prepared.points.shape[0]
-    if limit is None or n <= limit:
-        return prepared
-    keep = np.zeros(n, dtype=bool)
-    keep[np.random.default_rng(seed).choice(n, limit, replace=False)] = True
-    valid = prepared.valid.copy()
-    valid[np.flatnonzero(prepared.valid)[~keep]] = False
-    left = prepared.valid & ~valid
-    points, t = prepared.points[~keep], prepared.t[~keep]
-    if prepared.rest is not None:
-        # the rest's points are in event order, as every selection of events is
-        order = np.argsort(np.concatenate([np.flatnonzero(left), np.flatnonzero(prepared.rest[2])]))
-        points = np.vstack([points, prepared.rest[0]])[order]
-        t = np.concatenate([t, prepared.rest[1]])[order]
-        left |= prepared.rest[2]
-    on_edge = None if prepared.on_edge is None else prepared.on_edge[keep]
-    return replace(
-        prepared,
-        points=prepared.points[keep],
-        t=prepared.t[keep],
-        valid=valid,
-        on_edge=on_edge,
-        rest=(points, t, left),
-    )
 
 
 def fit_support(window: Recording, denoise: DenoiseSettings) -> np.ndarray:

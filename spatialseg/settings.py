@@ -281,9 +281,7 @@ class ClusteringSettings:
     label_tol: float | None = None
     #: Optimiser budget per cluster per theta-step.
     evals_per_step: int = 30
-    #: The loop's theta- and P-steps and the refit run on a random sample of at most this
-    #: many of the window's events (the starts on all); every event is labelled once at
-    #: the end; null: all.
+    #: Theta-step on a random sample of at most this many events (P-step on all); null: all.
     step_events: int | None = 20000
     #: Events on an occlusion edge in the theta-step too; false: the P-step labels them,
     #: velocities ignore them.

@@ -36,7 +36,6 @@ from spatialseg.grid import project_jacobian
 from spatialseg.points import (
     ModelEvaluator,
     Prepared,
-    fit_sample,
     off_edge_events,
     p_step_settings,
     prepare,
@@ -100,8 +99,7 @@ BOX_FACE = 0.02
 class WindowResult:
     """The segmentation of one window: labels and probabilities cover its own events; the
     clustering, ``prepared`` and ``t_ref`` describe the span it was clustered on (the
-    window with its ``window.context`` neighbours; the window alone by default), and
-    ``prepared`` the events fitted (at most ``clustering.step_events``, :func:`fit_sample`)."""
+    window with its ``window.context`` neighbours; the window alone by default)."""
 
     labels: np.ndarray
     probabilities: np.ndarray
@@ -149,7 +147,6 @@ def segment_window(
     ceiling = search_bounds(
         prepared, 1.0, clustering.max_depth_change, windows=len(window.depth_maps) - 1
     )
-    every, prepared = prepared, fit_sample(prepared, clustering.step_events, seed)
     objectives: tuple[ModelEvaluator, StepStage | None] | None = None
 
     def cluster(init: motion_init.InitResult, method: str, box: np.ndarray) -> ClusteringResult:
@@ -184,7 +181,7 @@ def segment_window(
             start = time.perf_counter()
             if method == PREVIOUS:
                 if objectives is None:
-                    objectives = _window_objectives(prepared, t_ref, settings, optimizer)
+                    objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
                 assert previous is not None  # skipped above otherwise
                 init = previous_init(
                     previous, prepared, objectives[0], clustering, bounds, alone=alone
@@ -192,18 +189,17 @@ def segment_window(
             else:
                 init = initialise(
                     window,
-                    every,
+                    prepared,
                     _with_start(settings, method),
                     k,
                     bounds,
                     seed=seed,
                     optimizer=optimizer,
                 )
-                init = _on_sample(init, prepared.valid[every.valid])
             timings["init"] += time.perf_counter() - start
             start = time.perf_counter()
             if objectives is None:  # after the first start, so a tile start's volumes are freed
-                objectives = _window_objectives(prepared, t_ref, settings, optimizer)
+                objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
             result = cluster(init, method, bounds)
             timings["cluster"] += time.perf_counter() - start
             if progress is not None and len(starts) > 1:
@@ -335,46 +331,43 @@ def _with_start(settings: Settings, method: str) -> Settings:
     return replace(settings, init=replace(settings.init, method=method))
 
 
-def _on_sample(init: motion_init.InitResult, kept: np.ndarray) -> motion_init.InitResult:
-    """A start found on every fitted event, its per-event rows narrowed to those ``kept``
-    (a mask over them) for the loop on the sample.
-
-    Decision: the starts see every fitted event, the loop the sample. Run on the sample too,
-    the tile start judged each tile on a fraction of its events, and the dev split's mean
-    fell from 0.894 to 0.869 (ego_sideways seed 1: 0.836 -> 0.587; docs/performance.md)."""
-    flows = init.flows[kept]
-    n_valid = int(np.count_nonzero(np.isfinite(flows).all(axis=1)))
-    return replace(init, labels=init.labels[kept], flows=flows, n_valid=n_valid)
-
-
 def _window_objectives(
-    prepared: Prepared, t_ref: float, settings: Settings, optimizer: Any
+    prepared: Prepared, t_ref: float, settings: Settings, optimizer: Any, *, seed: int
 ) -> tuple[ModelEvaluator, StepStage | None]:
-    """The P-step's evaluator over the fitted events and the theta-step's over those off
-    occlusion edges (:func:`_step_subset`; None: the same events), shared by the starts."""
+    """The P-step's evaluator over every event and the theta-step on a sample of them
+    (:func:`_step_subset`; None: on every event), shared by the window's starts."""
     evaluator = window_objective(prepared, t_ref, settings)
-    step = _step_subset(prepared, t_ref, settings)
+    step = _step_subset(prepared, t_ref, settings, seed=seed)
     budget = settings.clustering.evals_per_step
     return evaluator, None if step is None else StepStage(step[0], optimizer, budget, step[1])
 
 
 def _step_subset(
-    prepared: Prepared, t_ref: float, settings: Settings
+    prepared: Prepared, t_ref: float, settings: Settings, *, seed: int
 ) -> tuple[ModelEvaluator, np.ndarray] | None:
-    """The theta-step's evaluator over the events off occlusion edges (and their indices),
-    or None to optimise on every event (``clustering.step_edges``, or no such edges).
+    """The theta-step's evaluator over at most ``clustering.step_events`` events drawn with
+    ``seed`` (and their indices), or None to optimise on all events. Unless
+    ``clustering.step_edges``, events on occlusion edges are left out of the draw.
 
-    Decision: an event on an occlusion edge takes the nearer depth, which is wrong for the
-    background seen just after the occluder passed; such events biased the static scene's
-    vz in ``ego_street`` (docs/scenes.md), so with ``step_edges=false`` they are labelled
-    but do not steer the velocities.
+    Decision: the contrast's maximum is set by the motion, not by the event count, so the
+    velocities can be found on a sample while the P-step labels every event; the cost of
+    the theta-step then stops growing with the window (measured in docs/performance.md).
+    An event on an occlusion edge takes the nearer depth, which is wrong for the background
+    seen just after the occluder passed; such events biased the static scene's vz in
+    ``ego_street`` (docs/scenes.md), so they are labelled but do not steer the velocities.
     """
     clustering = settings.clustering
-    if clustering.step_edges:
+    limit = clustering.step_events
+    n = prepared.points.shape[0]
+    pool = (
+        np.arange(n)
+        if clustering.step_edges
+        else off_edge_events(prepared, settings.cluster_count or clustering.max_clusters)
+    )
+    if len(pool) == n and (limit is None or n <= limit):
         return None
-    pool = off_edge_events(prepared, settings.cluster_count or clustering.max_clusters)
-    if len(pool) == prepared.points.shape[0]:
-        return None
+    if limit is not None and len(pool) > limit:
+        pool = np.sort(np.random.default_rng(seed).choice(pool, limit, replace=False))
     return window_objective(prepared, t_ref, settings, pool), pool
 
 

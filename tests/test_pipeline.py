@@ -336,36 +336,11 @@ def test_events_on_occlusion_edges_do_not_steer_the_velocities():
     settings = settings_from(cfg)
     prepared = prepare(window, settings)
     assert prepared.on_edge.any() and not prepared.on_edge.all()
-    evaluator, subset = _step_subset(prepared, 0.0, settings)
+    evaluator, subset = _step_subset(prepared, 0.0, settings, seed=0)
     assert evaluator.n_events == len(subset) == int((~prepared.on_edge).sum())
     assert not prepared.on_edge[subset].any()
     edges_too = replace(settings, clustering=replace(settings.clustering, step_edges=True))
-    assert _step_subset(prepared, 0.0, edges_too) is None  # every fitted event
-
-
-def test_fit_sample_moves_the_unsampled_points_to_the_rest_in_event_order():
-    """fit_sample: the sample is drawn from the fitted points; the rest holds the others and
-    the events kept aside before, in event order, so each event's label lands on it."""
-    from spatialseg.points import fit_sample
-
-    cfg = _config("clustering.step_events=1000", scene="approach")
-    _, window = next(load_scene(cfg["scene"], seed=0, window_events=4000).windows())
-    prepared = prepare(window, settings_from(cfg))
-    assert fit_sample(prepared, None, 0) is prepared
-    assert fit_sample(prepared, len(prepared.points), 0) is prepared
-    sample = fit_sample(prepared, 1000, 0)
-    assert sample.points.shape == (1000, 3) and sample.valid.sum() == 1000
-    assert sample.on_edge.shape == (1000,) and sample.grid is prepared.grid
-    assert not np.any(sample.valid & sample.rest[2])
-    np.testing.assert_array_equal(sample.labelled, prepared.labelled)
-    lifted = np.full((len(window.events), 3), np.nan)
-    lifted[prepared.valid] = prepared.points
-    lifted[prepared.rest[2]] = prepared.rest[0]
-    np.testing.assert_array_equal(sample.points, lifted[sample.valid])
-    np.testing.assert_array_equal(sample.rest[0], lifted[sample.rest[2]])
-    np.testing.assert_array_equal(sample.rest[1], window.events.t[sample.rest[2]])
-    again = fit_sample(prepared, 1000, 0)
-    np.testing.assert_array_equal(again.valid, sample.valid)  # the seed decides the draw
+    assert _step_subset(prepared, 0.0, edges_too, seed=0) is None  # all 4,000 events
 
 
 def _with_init(cfg: dict, **init) -> Settings:
