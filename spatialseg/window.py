@@ -149,13 +149,20 @@ def segment_window(
     )
     objectives: tuple[ModelEvaluator, StepStage | None] | None = None
 
+    def shared() -> tuple[ModelEvaluator, StepStage | None]:
+        """The objectives every start's loop shares, built on first use: after the first
+        start, so a tile start's volumes are freed first (or for the ``previous`` start)."""
+        nonlocal objectives
+        if objectives is None:
+            objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
+        return objectives
+
     def cluster(init: motion_init.InitResult, method: str, box: np.ndarray) -> ClusteringResult:
         """Algorithm 1 from ``init`` in the search box ``box`` (``method``: the start's name)."""
-        assert objectives is not None  # built before the first clustering
         return _cluster_from(
             init,
             prepared,
-            objectives,
+            shared(),
             clustering,
             optimizer,
             box,
@@ -173,18 +180,15 @@ def segment_window(
     def best_start(k: int) -> tuple[ClusteringResult, motion_init.InitResult, str]:
         """The loop from each start with ``k`` motions (``previous`` only where the window
         before found ``k``), the highest total contrast kept."""
-        nonlocal objectives
         best: tuple[ClusteringResult, motion_init.InitResult, str] | None = None
         for method in starts:
             if method == PREVIOUS and (previous is None or len(previous) != k):
                 continue
             start = time.perf_counter()
             if method == PREVIOUS:
-                if objectives is None:
-                    objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
                 assert previous is not None  # skipped above otherwise
                 init = previous_init(
-                    previous, prepared, objectives[0], clustering, bounds, alone=alone
+                    previous, prepared, shared()[0], clustering, bounds, alone=alone
                 )
             else:
                 init = initialise(
@@ -198,8 +202,6 @@ def segment_window(
                 )
             timings["init"] += time.perf_counter() - start
             start = time.perf_counter()
-            if objectives is None:  # after the first start, so a tile start's volumes are freed
-                objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
             result = cluster(init, method, bounds)
             timings["cluster"] += time.perf_counter() - start
             if progress is not None and len(starts) > 1:
@@ -218,12 +220,12 @@ def segment_window(
         )
     else:
         kept = best_start(wanted)
-    assert objectives is not None
+    evaluator = shared()[0]
     result, init, method = kept
     start = time.perf_counter()
     while (wider := widened_box(result.thetas, bounds, ceiling)) is not None:
         start_wider = previous_init(
-            result.thetas, prepared, objectives[0], clustering, wider, alone=alone
+            result.thetas, prepared, evaluator, clustering, wider, alone=alone
         )
         regrown = cluster(start_wider, f"{method}, box grown", wider)
         kept_wider = _better(regrown, result, auto=wanted is None)
@@ -250,7 +252,7 @@ def segment_window(
             if scale is None
             else prior_weights(prepared, result.thetas, result.probabilities, scale)
         )
-        relabelled = p_step(objectives[0], result.thetas, result.probabilities, sigmas, 1, prior)
+        relabelled = p_step(evaluator, result.thetas, result.probabilities, sigmas, 1, prior)
         result = replace(result, probabilities=relabelled)
         timings["relabel"] = time.perf_counter() - start
     start = time.perf_counter()
