@@ -306,8 +306,9 @@ class ClusteringSettings:
     p_step_stride: int = 1
     p_step_alone: PStepAloneSettings = field(default_factory=PStepAloneSettings)
     #: After the refit, one more P-step at the final velocities gives the labels, smoothed
-    #: by this ([image, depth] voxels, full grid); null: the loop's last memberships. A
-    #: window clustered alone keeps the loop's (relabelling cost approach 0.94 -> 0.92).
+    #: by this ([image, depth] voxels, full grid; rebuilt from every event where it leaves
+    #: a cluster wasted); null: the loop's last memberships. A window clustered alone
+    #: keeps the loop's (relabelling cost approach 0.94 -> 0.92).
     relabel_sigma: Sigma | None = (1.0, 4.0)
     #: Voxels: in the relabelling, an event whose two likeliest motions move its point less
     #: than about this far apart is weighted by the clusters' shares; null: no prior.

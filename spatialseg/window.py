@@ -29,7 +29,9 @@ from spatialseg.clustering import (
     iterative_clustering,
     maximize_contrast,
     p_step,
+    repaired_memberships,
     update_memberships,
+    weak_cluster,
 )
 from spatialseg.depth import make_depth_source
 from spatialseg.grid import project_jacobian
@@ -253,6 +255,15 @@ def segment_window(
             else prior_weights(prepared, result.thetas, result.probabilities, scale)
         )
         relabelled = p_step(evaluator, result.thetas, result.probabilities, sigmas, 1, prior)
+        weak = weak_cluster(result.thetas, relabelled, separation)
+        if weak is not None:
+            if progress is not None:
+                log.debug(
+                    "%s: cluster %d wasted; memberships rebuilt from every event", progress, weak
+                )
+            relabelled = repaired_memberships(
+                evaluator, result.thetas, sigmas, clustering.max_iterations
+            )
         result = replace(result, probabilities=relabelled)
         timings["relabel"] = time.perf_counter() - start
     start = time.perf_counter()

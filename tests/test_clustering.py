@@ -16,6 +16,7 @@ from spatialseg.clustering import (
     initial_memberships,
     iterative_clustering,
     p_step,
+    repaired_memberships,
     update_memberships,
 )
 from spatialseg.config import conf_dir
@@ -133,6 +134,22 @@ def test_p_step_prior_weight_scales_responses_by_the_cluster_shares():
     for bad in (np.ones(3), np.full(len(p), 1.5)):
         with pytest.raises(ValueError, match=r"prior_weight must be \d+ numbers in \[0, 1\]"):
             p_step(evaluator, truth, p, 2.0, 1, bad)
+
+
+def test_repaired_memberships_give_an_emptied_cluster_back_its_events():
+    """Issue #25: the P-step weighted by the memberships leaves a cluster with none of them
+    empty even at its object's velocity; the repair (every event in every volume, then
+    weighted P-steps until the labels settle) gives it that object's events back."""
+    rng = np.random.default_rng(0)
+    points, dt, labels, truth = _two_motion_cloud(rng)
+    grid = grid_around(points, np.array([0.005, 0.005, 0.02]), 0.1, 10**7)
+    evaluator = ModelEvaluator(VolumeObjective(points, dt, grid, "variance"), 3)
+    emptied = np.column_stack([np.ones(len(points)), np.zeros(len(points))])
+    assert np.all(p_step(evaluator, truth, emptied, 2.0, 1).argmax(axis=1) == 0)
+    repaired = repaired_memberships(evaluator, truth, 2.0, max_steps=20)
+    assert repaired.shape == emptied.shape
+    np.testing.assert_allclose(repaired.sum(axis=1), 1.0)
+    assert np.mean(repaired.argmax(axis=1) == labels) > 0.95
 
 
 def test_theta_step_on_a_subset_labels_every_event():

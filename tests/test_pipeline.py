@@ -10,6 +10,8 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import optimizers
+from spatialseg import window as window_module
+from spatialseg.clustering import ClusteringResult
 from spatialseg.config import conf_dir
 from spatialseg.metrics import segmentation_metrics
 from spatialseg.pipeline import SegmentationResult, segment_recording
@@ -24,7 +26,13 @@ from spatialseg.scenes import load_scene
 from spatialseg.settings import RefitSettings, Settings, settings_from, smoothing
 from spatialseg.starts import previous_init
 from spatialseg.volume import VolumeObjective
-from spatialseg.window import check_config, prior_weights, segment_window, widened_box
+from spatialseg.window import (
+    WindowResult,
+    check_config,
+    prior_weights,
+    segment_window,
+    widened_box,
+)
 
 
 def _config(*overrides: str, scene: str = "interior") -> dict:
@@ -566,8 +574,9 @@ def test_relabelling_is_one_p_step_at_the_final_velocities():
     """A window clustered with its neighbours takes its labels from one more P-step at the
     final (refitted) velocities, weighted by the loop's memberships, smoothed by
     clustering.relabel_sigma and with the clusters' shares as a prior where the motions
-    agree (clustering.relabel_prior_scale); null keeps the loop's memberships, and the
-    velocities are the same either way. A window clustered alone is never relabelled."""
+    agree (clustering.relabel_prior_scale; no cluster is left wasted here, so no repair);
+    null keeps the loop's memberships, and the velocities are the same either way. A
+    window clustered alone is never relabelled."""
     from spatialseg.clustering import p_step
 
     cfg = _config("window.events=1500")
@@ -589,6 +598,37 @@ def test_relabelling_is_one_p_step_at_the_final_velocities():
     np.testing.assert_allclose(on.clustering.probabilities, expected, atol=1e-12)
     assert not np.allclose(expected, p)  # the relabelling changed the memberships
     assert "relabel" in on.timings
+
+
+def test_a_cluster_emptied_before_the_relabelling_is_repaired(monkeypatch):
+    """Issue #25: a cluster left without events (emptied on purpose after the refit, at its
+    object's velocity) is wasted after the relabelling, whose volumes are weighted by the
+    memberships; the repair rebuilds the memberships from every event and gives it its
+    object back. The velocities are not touched."""
+    cfg = _config("window.events=1500")
+    rec = load_scene(cfg["scene"], seed=0, window_events=1500, windows=3)
+    _, span, _ = list(rec.spans(1))[1]  # the middle window with both neighbours
+    refit = window_module.refit_velocities
+
+    def run() -> WindowResult:
+        return segment_window(span, settings_from(cfg), optimizers.create("ssa_ga"), seed=0)
+
+    def emptied(*args: object, **kwargs: object) -> ClusteringResult:
+        fitted = refit(*args, **kwargs)
+        p = np.zeros_like(fitted.probabilities)
+        p[:, 0] = 1.0
+        return replace(fitted, probabilities=p)
+
+    plain = run()
+    monkeypatch.setattr(window_module, "refit_velocities", emptied)
+    repaired = run()
+    assert np.array_equal(plain.clustering.thetas, repaired.clustering.thetas)
+    truth = span.ground_truth.labels
+    accuracy = segmentation_metrics(repaired.labels, truth)["accuracy"]
+    assert accuracy > 0.9
+    assert accuracy > segmentation_metrics(plain.labels, truth)["accuracy"] - 0.05
+    shares = np.bincount(repaired.labels[repaired.labels >= 0], minlength=2) / len(truth)
+    assert shares.min() > 0.2
 
 
 def test_prior_weights_are_one_where_the_motions_agree_and_fall_with_their_gap(interior):
