@@ -37,6 +37,7 @@ __all__ = [
     "iterative_clustering",
     "maximize_contrast",
     "p_step",
+    "p_step_from_every_event",
     "repaired_memberships",
     "update_memberships",
     "weak_cluster",
@@ -273,6 +274,18 @@ def p_step(
     return update_memberships(responses)
 
 
+def p_step_from_every_event(
+    evaluator: ClusterEvaluator,
+    thetas: np.ndarray,
+    sigma: float | Sequence[float],
+    stride: int,
+) -> np.ndarray:
+    """One P-step at ``thetas`` with every event voting equally into every motion's volume
+    (N x K): the memberships the motions alone give, whatever earlier memberships were."""
+    uniform = np.full((evaluator.n_events, len(thetas)), 1.0 / len(thetas))
+    return p_step(evaluator, thetas, uniform, sigma, stride)
+
+
 #: The repair's weighted P-steps stop once under this share of the events changes cluster.
 REPAIR_LABEL_TOL = 0.005
 
@@ -294,7 +307,7 @@ def repaired_memberships(
     With every event in every volume each motion gets the events it sharpens; alone, those
     memberships are soft and sweep short windows to one cluster, so the weighted steps then
     harden them (docs/method.md, "Relabelling")."""
-    p = p_step(evaluator, thetas, np.ones((evaluator.n_events, len(thetas))), sigma, 1)
+    p = p_step_from_every_event(evaluator, thetas, sigma, 1)
     for _ in range(max_steps):
         harder = p_step(evaluator, thetas, p, sigma, 1)
         changed = float(np.mean(harder.argmax(axis=1) != p.argmax(axis=1)))

@@ -17,7 +17,7 @@ import numpy as np
 
 import optimizers
 from spatialseg import hypotheses, motion_init
-from spatialseg.clustering import p_step
+from spatialseg.clustering import p_step_from_every_event
 from spatialseg.grid import project_jacobian
 from spatialseg.points import (
     ModelEvaluator,
@@ -296,11 +296,9 @@ def previous_init(
         raise ValueError(
             f"previous velocities must be finite, K x {prepared.dim}; got shape {previous.shape}"
         )
-    k = len(previous)
     thetas = np.clip(previous[:, : prepared.dim], bounds[:, 0], bounds[:, 1])
     sigmas, stride = p_step_settings(clustering, alone=alone)
-    uniform = np.full((prepared.points.shape[0], k), 1.0 / k)
-    labels = np.argmax(p_step(evaluator, thetas, uniform, sigmas, stride), axis=1)
+    labels = np.argmax(p_step_from_every_event(evaluator, thetas, sigmas, stride), axis=1)
     return motion_init.InitResult(
         spatial_velocities(thetas), np.full((len(labels), 3), np.nan), 0, False, labels
     )
