@@ -308,11 +308,11 @@ def repaired_memberships(
     memberships are soft and sweep short windows to one cluster, so the weighted steps then
     harden them (docs/method.md, "Relabelling")."""
     p = p_step_from_every_event(evaluator, thetas, sigma, 1)
+    labels = p.argmax(axis=1)
     for _ in range(max_steps):
-        harder = p_step(evaluator, thetas, p, sigma, 1)
-        changed = float(np.mean(harder.argmax(axis=1) != p.argmax(axis=1)))
-        p = harder
-        if changed < REPAIR_LABEL_TOL:
+        p = p_step(evaluator, thetas, p, sigma, 1)
+        previous, labels = labels, p.argmax(axis=1)
+        if np.mean(labels != previous) < REPAIR_LABEL_TOL:
             break
     return p
 
