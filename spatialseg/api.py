@@ -60,7 +60,6 @@ _NOT_SETTINGS = ("scene", "seed", "n_clusters", "tracking", "output", "hydra")
 _NULLABLE = frozenset(
     {
         "edpa.edge_ratio",
-        "volume.min_band_share",
         "init.tiles.explained",
         "clustering.step_events",
         "clustering.max_depth_change",

@@ -19,7 +19,6 @@ __all__ = [
     "UNKNOWN_DEPTH_POLICIES",
     "Lifted",
     "back_project",
-    "dense_depth_bands",
     "event_depth",
     "fill_depth",
     "lift",
@@ -308,41 +307,3 @@ def voxel_size(
     sy = xy_scale * median / camera.fy
     sz = max(float(z.max() - z.min()) / int(z_bins), min(sx, sy), depth_error * median)
     return np.array([sx, sy, sz])
-
-
-def dense_depth_bands(depth: np.ndarray, *, gap: float, min_share: float | None) -> np.ndarray:
-    """Mask (N,) of the events that lie in a dense depth band, the ones the volume is built on.
-
-    The sorted depths are split into bands wherever two neighbours are more than ``gap``
-    times the median depth apart; a band holding fewer than ``min_share`` of the events is
-    left out. ``min_share=None`` keeps every event (the paper's reading: the grid spans
-    all of them). When no band is dense enough, every event is kept.
-
-    Decision: background-activity noise on a static background far behind the moving
-    objects forms a thin, distant band (``approach``: 3 % of the events at 8 m, objects at
-    3.0-3.7 m). Spanning it makes the grid 6 m deep, so ``z_bins`` gives 0.31 m depth voxels,
-    as much as the approaching box moves in the whole window; its vz is then invisible to
-    the contrast (with ground-truth memberships the maximum sits at vz = -0.77, truth -2.5).
-    A band is judged by its share of events, not its depth, so a far object that produces
-    events (a car at 10 m on ``exterior``, 45 % of them) keeps its own band.
-    """
-    z = np.asarray(depth, dtype=np.float64)
-    if z.ndim != 1 or not len(z) or not np.all(np.isfinite(z)):
-        raise ValueError(f"need a non-empty 1-D array of finite depths, got shape {z.shape}")
-    if not (np.isfinite(gap) and gap > 0):
-        raise ValueError(f"volume.depth_gap must be a positive number, got {gap}")
-    if min_share is None:
-        return np.ones(len(z), dtype=bool)
-    if not 0.0 <= min_share <= 1.0:
-        raise ValueError(f"volume.min_band_share must be in [0, 1] or null, got {min_share}")
-    order = np.argsort(z, kind="stable")
-    sorted_z = z[order]
-    cuts = np.flatnonzero(np.diff(sorted_z) > gap * float(np.median(z))) + 1
-    starts, ends = np.r_[0, cuts], np.r_[cuts, len(z)]
-    dense = (ends - starts) >= min_share * len(z)
-    if not dense.any():
-        return np.ones(len(z), dtype=bool)
-    keep = np.zeros(len(z), dtype=bool)
-    for start, end in zip(starts[dense], ends[dense], strict=True):
-        keep[order[start:end]] = True
-    return keep

@@ -49,8 +49,8 @@ class Prepared:
     ``search_extent`` (3,) is the extent the search box is measured on (:func:`search_bounds`);
     None means the grid's. ``on_edge`` (M,) marks points whose depth came from an occlusion
     edge (:func:`spatialseg.edpa.occlusion_edges`); None: no such points. ``rest``: the
-    points, times and mask (N,) of the events with depth left out of the fit (noise, sparse
-    depth bands), labelled from the fitted motions at the end; None: none.
+    points, times and mask (N,) of the events with depth left out of the fit (the
+    background filter's rejects), labelled from the fitted motions at the end; None: none.
     """
 
     points: np.ndarray
@@ -85,12 +85,7 @@ def prepare(window: Recording, settings: Settings) -> Prepared:
         fill_radius=lifting.fill_radius,
         edge_ratio=lifting.edge_ratio,
     )
-    supported = support[lifted.valid]
-    dense = edpa.dense_depth_bands(
-        lifted.points[supported, 2], gap=vol.depth_gap, min_share=vol.min_band_share
-    )
-    fit = np.zeros(len(supported), dtype=bool)
-    fit[np.flatnonzero(supported)[dense]] = True
+    fit = support[lifted.valid]
     if not fit.any():
         fit[:] = True  # nothing supported: fit on every event with depth
     points = lifted.points[fit]
@@ -98,7 +93,7 @@ def prepare(window: Recording, settings: Settings) -> Prepared:
     valid = lifted.valid.copy()
     valid[np.flatnonzero(valid)[~fit]] = False
     rest_valid = lifted.valid & ~valid
-    extent = _search_extent(lifted.points[supported], grid, vol.margin)
+    extent = _search_extent(points, grid, vol.margin)
     on_edge = lifted.on_edge[lifted.valid][fit]
     rest = (lifted.points[~fit], lifted.t[~fit], rest_valid)
     return Prepared(points, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
@@ -162,17 +157,11 @@ def volume_grid(
     return grid_around(points, size, vol.margin, vol.max_voxels, projection)
 
 
-def _search_extent(all_points: np.ndarray, grid: VoxelGrid, margin: float) -> np.ndarray:
-    """Per axis (metres), the larger of a metric grid's extent and all lifted points' extent
-    (``margin`` added).
-
-    Decision: events left out of the grid (sparse depth bands) still count for the search
-    box, so trimming the grid makes the voxels finer without narrowing the velocities the
-    optimiser may try. Otherwise ``approach``'s grid, trimmed to 0.9 m deep, would cap vz
-    at 1.1 m/s, below the approaching box's 2.5 m/s. An image grid is not in metres, so
-    there only the points count.
-    """
-    span = (1 + 2 * margin) * (all_points.max(axis=0) - all_points.min(axis=0))
+def _search_extent(points: np.ndarray, grid: VoxelGrid, margin: float) -> np.ndarray:
+    """Per axis (metres), the fitted points' extent with ``margin`` added on each side; for a
+    metric grid the grid's own extent where larger (its voxels round it up). An image grid
+    is not in metres, so there only the points count."""
+    span = (1 + 2 * margin) * (points.max(axis=0) - points.min(axis=0))
     if grid.projection is not None:
         return span
     return np.maximum(np.asarray(grid.shape, float) * grid.voxel_size, span)

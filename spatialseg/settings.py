@@ -155,10 +155,6 @@ class VolumeSettings:
     z_bins: int = 16
     #: The depth's relative error: no depth voxel is finer than it at the median depth.
     depth_error: float = 0.1
-    #: Sorted depths split into bands where neighbours differ by > this x median depth.
-    depth_gap: float = 0.1
-    #: Bands with fewer events are left out of the grid (label -1); null: keep all (paper).
-    min_band_share: float | None = 0.05
     #: Grid extent beyond the points' bounding box, fraction per axis.
     margin: float = 0.1
     max_voxels: int = 20_000_000
@@ -168,9 +164,6 @@ class VolumeSettings:
     def __post_init__(self) -> None:
         integer_setting(self.z_bins, "volume.z_bins", 1)
         number_setting(self.depth_error, "volume.depth_error", 0)
-        optional_positive(self.depth_gap, "volume.depth_gap")
-        if self.min_band_share is not None:
-            _in_range(self.min_band_share, "volume.min_band_share", 0, 1, open_low=False)
         number_setting(self.margin, "volume.margin", 0)
         integer_setting(self.max_voxels, "volume.max_voxels", 1)
 

@@ -7,7 +7,6 @@ import pytest
 
 from spatialseg.edpa import (
     back_project,
-    dense_depth_bands,
     event_depth,
     fill_depth,
     lift,
@@ -230,30 +229,6 @@ def test_lift_marks_the_events_on_occlusion_edges():
     ev = _events(CASES)
     expected = occlusion_edges(Z1[ev.y, ev.x], Z2[ev.y, ev.x], 0.2)
     assert lifted.on_edge.tolist() == expected.tolist() and expected.any()
-
-
-def test_dense_depth_bands_leave_out_a_thin_distant_band():
-    """97 events on objects at 3.0-3.7 m, 3 noise events on a wall at 8 m (as on approach)."""
-    near = np.linspace(3.0, 3.7, 97)
-    z = np.r_[near, 8.0, 8.0, 8.0]
-    keep = dense_depth_bands(z, gap=0.1, min_share=0.05)
-    np.testing.assert_array_equal(keep, np.r_[np.ones(97, bool), np.zeros(3, bool)])
-    assert dense_depth_bands(z, gap=0.1, min_share=None).all()  # the paper's reading
-    # a far band holding many events (a far object) is kept
-    far = np.r_[near, np.full(40, 10.0)]
-    assert dense_depth_bands(far, gap=0.1, min_share=0.05).all()
-    # no band dense enough: nothing is left out
-    spread = np.array([1.0, 2.0, 4.0, 8.0])
-    assert dense_depth_bands(spread, gap=0.1, min_share=0.5).all()
-
-
-def test_dense_depth_bands_rejects_bad_input():
-    with pytest.raises(ValueError, match="depth_gap"):
-        dense_depth_bands(np.array([1.0, 2.0]), gap=0.0, min_share=0.05)
-    with pytest.raises(ValueError, match="min_band_share"):
-        dense_depth_bands(np.array([1.0, 2.0]), gap=0.1, min_share=1.5)
-    with pytest.raises(ValueError, match="finite"):
-        dense_depth_bands(np.array([1.0, NAN]), gap=0.1, min_share=0.05)
 
 
 def _approaching_box() -> tuple[np.ndarray, np.ndarray]:
