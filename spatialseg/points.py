@@ -157,14 +157,14 @@ def volume_grid(
     return grid_around(points, size, vol.margin, vol.max_voxels, projection)
 
 
-def _search_extent(points: np.ndarray, grid: VoxelGrid, margin: float) -> np.ndarray:
-    """Per axis (metres), the fitted points' extent with ``margin`` added on each side; for a
-    metric grid the grid's own extent where larger (its voxels round it up). An image grid
-    is not in metres, so there only the points count."""
-    span = (1 + 2 * margin) * (points.max(axis=0) - points.min(axis=0))
-    if grid.projection is not None:
-        return span
-    return np.maximum(np.asarray(grid.shape, float) * grid.voxel_size, span)
+def _search_extent(points: np.ndarray, grid: VoxelGrid, margin: float) -> np.ndarray | None:
+    """Per axis (metres), the fitted points' extent with ``margin`` added on each side, for
+    an image grid, which is not in metres; None for a metric grid, built around the same
+    points with the same margin, whose own extent is then measured (it is at least as
+    large: a voxel more, rounded up)."""
+    if grid.projection is None:
+        return None
+    return (1 + 2 * margin) * (points.max(axis=0) - points.min(axis=0))
 
 
 def search_bounds(
