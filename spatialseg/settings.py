@@ -272,8 +272,9 @@ class ClusteringSettings:
     #: Rule 4: stop when fewer than this share of events change cluster for patience
     #: iterations (memberships settled); null: off.
     label_tol: float | None = None
-    #: Optimiser budget per cluster per theta-step.
-    evals_per_step: int = 30
+    #: Optimiser budget per cluster per theta-step (30 until session 41: half of it paid
+    #: nothing on the yardstick's dev seeds; docs/method.md, "theta-step budget").
+    evals_per_step: int = 15
     #: Theta-step on a random sample of at most this many events (P-step on all); null: all.
     step_events: int | None = 20000
     #: Events on an occlusion edge in the theta-step too; false: the P-step labels them,

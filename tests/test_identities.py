@@ -70,7 +70,10 @@ def _config(*overrides: str) -> dict:
             overrides=[
                 "+scene=interior",
                 "window.events=4000",
-                "init.method=image_flow",
+                # the tile start separates the carts in each window (per window 0.99 at 8,
+                # 15 and 30 evaluations per theta-step); from the image-flow start window 1
+                # stayed mixed, and the linking of mixed windows is a guess
+                "init.method=tiles",
                 "clustering.max_iterations=8",
                 "window.context=0",
                 # interior's depth is exact; the default floor for a 10 % depth error
@@ -110,9 +113,9 @@ def test_ids_stay_stable_over_windows_when_a_window_s_clusters_come_out_permuted
     np.testing.assert_array_equal(permuted.labels, plain.labels)
     assert permuted.windows[1].ids.tolist() == plain.windows[1].ids[::-1].tolist()
     scores = recording_metrics(permuted.labels, rec.ground_truth.labels, permuted.indices)
-    assert scores["accuracy_per_window"] >= 0.75  # each window separates the carts
+    assert scores["accuracy_per_window"] >= 0.95  # each window separates the carts
     assert scores["accuracy"] >= scores["accuracy_per_window"] - 0.01  # with one id each
     assert permuted.probabilities.shape == (len(rec.events), permuted.n_objects)
     labelled = permuted.labels >= 0
     best = permuted.probabilities[labelled].argmax(axis=1)
-    assert np.mean(best == permuted.labels[labelled]) > 0.8  # smoothed: 0.92; columns swapped: few
+    assert np.mean(best == permuted.labels[labelled]) > 0.8  # smoothed: 0.99; columns swapped: few
