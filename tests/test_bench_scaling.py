@@ -61,3 +61,15 @@ def test_window_benchmark_times_a_config_and_reports_its_run() -> None:
     assert row["cold_s"] > 0 and row["warm_s"] > 0
     assert row["accuracy"] > 0.8  # both carts found (0.89 measured; one cluster scores ~0.5)
     assert 1 <= row["iterations"] <= 20 and row["evaluations"] > 0
+
+
+def test_window_benchmark_configs_are_checked_before_any_timing() -> None:
+    """A config may join ``default`` with overrides; a bad override exits 2 at the start."""
+    assert bench_window.config_overrides("default,+preset=fast") == ["+preset=fast"]
+    assert bench_window.config_overrides("default") == []
+    ok = bench_window.parse_args(["--configs", "default,+preset=fast", "default"])
+    assert ok.configs == ["default,+preset=fast", "default"]
+    for bad in ("clustering.no_such_key=1", "+preset=no_such"):
+        with pytest.raises(SystemExit) as exc:
+            bench_window.parse_args(["--configs", "default", bad])
+        assert exc.value.code == 2
