@@ -61,7 +61,6 @@ _NULLABLE = frozenset(
     {
         "edpa.edge_ratio",
         "init.tiles.explained",
-        "clustering.fit_events",
         "clustering.step_events",
         "clustering.max_depth_change",
         "clustering.relabel_sigma",
