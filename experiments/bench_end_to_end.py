@@ -56,7 +56,6 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -212,11 +211,9 @@ def create_store(uri: str) -> float:
 def pass_seconds(
     recording: Recording, settings: Settings, calls: int = PASS_CALLS
 ) -> tuple[float, int]:
-    """Time (s) of one fused objective+gradient pass over the events the recording's
-    windows would fit without a sample (``clustering.fit_events`` off: every event the
-    background filter supports), and their count: per window alone, as the pipeline builds
-    its objective, the median of ``calls`` calls at half the search box's upper corner after
-    a warm-up, summed.
+    """Time (s) of one fused objective+gradient pass over the recording's fitted events,
+    and their count: per window alone, as the pipeline builds its objective, the median of
+    ``calls`` calls at half the search box's upper corner after a warm-up, summed.
 
     Decision: one numba thread, as the child's (:data:`CHILD_ENV`), so the ratio of the
     child's segmentation time to it counts passes, not cores; the caller's thread count is
@@ -226,10 +223,9 @@ def pass_seconds(
     total, events = 0.0, 0
     reach = settings.clustering.max_displacement
     cap = settings.clustering.max_depth_change
-    whole = replace(settings, clustering=replace(settings.clustering, fit_events=None))
     try:
         for _, window, _ in recording.spans(0):
-            prepared = points.prepare(window, whole)
+            prepared = points.prepare(window, settings)
             t_ref = points.reference_time(prepared.t, settings.volume.t_ref)
             volume = points.window_objective(prepared, t_ref, settings).inner
             volume.set_weights(np.ones(volume.n_events))

@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit, prange
 from scipy.spatial import cKDTree
 
-__all__ = ["NEIGHBOURS", "conditional_labels", "neighbour_pairs", "potts_labels", "space_time"]
+__all__ = ["NEIGHBOURS", "neighbour_pairs", "potts_labels", "space_time"]
 
 #: Each event is joined to this many nearest events in space-time (pairs made symmetric).
 NEIGHBOURS = 8
@@ -125,33 +125,3 @@ def _expand(
     graph.maxflow()
     moved = graph.get_grid_segments(nodes)
     return np.where(moved, alpha, labels)
-
-
-def conditional_labels(
-    probabilities: np.ndarray,
-    points: np.ndarray,
-    fixed_points: np.ndarray,
-    fixed_labels: np.ndarray,
-    weight: float,
-    k: int = NEIGHBOURS,
-) -> np.ndarray:
-    """The labels (Q,) of the events at ``points`` (Q x 3, :func:`space_time`) with
-    memberships ``probabilities`` (Q x K) that minimise the Potts energy with the labels of
-    their ``k`` nearest events of ``fixed_points`` (M x 3, labels ``fixed_labels``) held:
-    each event's own cost plus ``weight`` per neighbour of another label.
-
-    Decision: events the motions were not fitted on (:func:`spatialseg.points.fit_sample`)
-    are many and each is told by its neighbours, not the other way round; with the fitted
-    events' labels held, their energy splits into one independent choice per event, exact
-    and linear in their number where a joint cut over a dense window's every event is not."""
-    p = np.asarray(probabilities, dtype=np.float64)
-    labels = p.argmax(axis=1) if p.size else np.zeros(len(p), dtype=np.int64)
-    if len(fixed_points) == 0 or weight == 0 or p.shape[1] < 2:
-        return labels
-    k = min(k, len(fixed_points))
-    tree = cKDTree(fixed_points, compact_nodes=False, balanced_tree=False)
-    found = tree.query(points, k=k, workers=numba.get_num_threads())[1].reshape(len(p), k)
-    neighbours = np.asarray(fixed_labels)[found]
-    agree = np.stack([(neighbours == label).sum(axis=1) for label in range(p.shape[1])], 1)
-    cost = -np.log(np.maximum(p, FLOOR)) + weight * (k - agree)
-    return cost.argmin(axis=1)

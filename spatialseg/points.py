@@ -8,7 +8,7 @@ the warp's reference time and :class:`ModelEvaluator`, one cluster's contrast of
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,8 +24,6 @@ from spatialseg.volume import VolumeObjective
 __all__ = [
     "ModelEvaluator",
     "Prepared",
-    "fit_limit",
-    "fit_sample",
     "fit_support",
     "off_edge_events",
     "p_step_settings",
@@ -52,9 +50,7 @@ class Prepared:
     None means the grid's. ``on_edge`` (M,) marks points whose depth came from an occlusion
     edge (:func:`spatialseg.edpa.occlusion_edges`); None: no such points. ``rest``: the
     points, times and mask (N,) of the events with depth left out of the fit (the
-    background filter's rejects and those outside the fit's sample, :func:`fit_sample`),
-    labelled from the fitted motions at the end; None: none. ``unsampled`` (N,) marks the
-    latter, the supported events the sample left out; None: no sample was drawn.
+    background filter's rejects), labelled from the fitted motions at the end; None: none.
     """
 
     points: np.ndarray
@@ -66,7 +62,6 @@ class Prepared:
     search_extent: np.ndarray | None = None
     on_edge: np.ndarray | None = None
     rest: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-    unsampled: np.ndarray | None = None
 
     @property
     def labelled(self) -> np.ndarray:
@@ -74,20 +69,16 @@ class Prepared:
         return self.valid if self.rest is None else self.valid | self.rest[2]
 
 
-def prepare(window: Recording, settings: Settings, *, seed: int = 0) -> Prepared:
+def prepare(window: Recording, settings: Settings) -> Prepared:
     """Lift the window's events into the model's space and build the voxel grid around the
-    events the motions are fitted on (:func:`fit_support`, then a sample of them drawn with
-    ``seed``: :func:`fit_sample`); the other events with depth are kept aside
-    (``Prepared.rest``) and labelled at the end."""
+    events the motions are fitted on (:func:`fit_support`);
+    the other events with depth are kept aside (``Prepared.rest``) and labelled at the end."""
     vol, lifting = settings.volume, settings.edpa
     if len(window.events) == 0:
         raise ValueError(f"{window.name}: the window has no events; choose a longer window")
     support = fit_support(window, settings.denoise)
-    limit = fit_limit(settings)
     if settings.model.name == "planar":
-        sample = fit_sample(support, limit, seed)
-        prepared = planar_points(window, settings.model.voxel_scale, sample)
-        return prepared if sample is support else replace(prepared, unsampled=support & ~sample)
+        return planar_points(window, settings.model.voxel_scale, support)
     lifted = edpa.lift(
         window,
         unknown_depth=lifting.unknown_depth,
@@ -97,7 +88,6 @@ def prepare(window: Recording, settings: Settings, *, seed: int = 0) -> Prepared
     fit = support[lifted.valid]
     if not fit.any():
         fit[:] = True  # nothing supported: fit on every event with depth
-    supported, fit = fit, fit_sample(fit, limit, seed)
     points = lifted.points[fit]
     grid = volume_grid(points, window.camera, settings)
     valid = lifted.valid.copy()
@@ -106,11 +96,7 @@ def prepare(window: Recording, settings: Settings, *, seed: int = 0) -> Prepared
     extent = _search_extent(points, grid, vol.margin)
     on_edge = lifted.on_edge[lifted.valid][fit]
     rest = (lifted.points[~fit], lifted.t[~fit], rest_valid)
-    unsampled = None
-    if fit is not supported:
-        unsampled = np.zeros_like(valid)
-        unsampled[np.flatnonzero(lifted.valid)[supported & ~fit]] = True
-    return Prepared(points, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest, unsampled)
+    return Prepared(points, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
 
 
 def fit_support(window: Recording, denoise: DenoiseSettings) -> np.ndarray:
@@ -127,33 +113,6 @@ def fit_support(window: Recording, denoise: DenoiseSettings) -> np.ndarray:
         support = denoise_mask(window.events, radius=denoise.radius, window=denoise.window)
         support |= not support.any()  # a window rejected whole (a few events): fit them all
     return support
-
-
-def fit_limit(settings: Settings) -> int | None:
-    """The most events a window's motions are fitted on: ``clustering.fit_events`` per
-    motion (``n_clusters``, or ``clustering.max_clusters`` with auto); None: all."""
-    per_motion = settings.clustering.fit_events
-    if per_motion is None:
-        return None
-    return per_motion * (settings.cluster_count or settings.clustering.max_clusters)
-
-
-def fit_sample(fit: np.ndarray, limit: int | None, seed: int) -> np.ndarray:
-    """``fit`` (a mask) with at most ``limit`` of its events kept, drawn uniformly with
-    ``seed`` (``fit`` itself when it holds no more); the others join the events labelled at
-    the end.
-
-    Decision: a motion's contrast peak is set by how its events line up, not by how many
-    there are, so the velocities need a window's worth of events per motion, not every one
-    of a dense recording's; fitting on a sample and labelling every event once from the
-    fitted motions (one P-step, :func:`spatialseg.window.label_rest`) makes the cost of a
-    window stop growing with its events (docs/performance.md)."""
-    chosen = np.flatnonzero(fit)
-    if limit is None or len(chosen) <= limit:
-        return fit
-    kept = np.zeros_like(fit)
-    kept[np.random.default_rng(seed).choice(chosen, limit, replace=False)] = True
-    return kept
 
 
 def planar_points(

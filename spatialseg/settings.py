@@ -275,12 +275,6 @@ class ClusteringSettings:
     #: Optimiser budget per cluster per theta-step (30 until session 41: half of it paid
     #: nothing on the yardstick's dev seeds; docs/method.md, "theta-step budget").
     evals_per_step: int = 15
-    #: Fit the motions (starts, loop, refit) on a random sample of at most this many events
-    #: per motion (n_clusters, or max_clusters with auto) and label the others once from
-    #: the fitted motions at the end; null: fit on every event. For dense windows: 25000
-    #: kept the dev accuracy but cost the held-out split 0.008 (docs/method.md, "The fit
-    #: on a sample").
-    fit_events: int | None = None
     #: Theta-step on a random sample of at most this many events (P-step on all); null: all.
     step_events: int | None = 20000
     #: Events on an occlusion edge in the theta-step too; false: the P-step labels them,
@@ -334,7 +328,6 @@ class ClusteringSettings:
                 f"clustering.label_tol must be a number in [0, 1) or null, got {self.label_tol!r}"
             )
         integer_setting(self.evals_per_step, "clustering.evals_per_step", 1)
-        integer_setting(self.fit_events, "clustering.fit_events", 1, optional=True)
         integer_setting(self.step_events, "clustering.step_events", 1, optional=True)
         _in_range(self.max_displacement, "clustering.max_displacement", 0, 1, open_low=True)
         optional_positive(self.max_depth_change, "clustering.max_depth_change")

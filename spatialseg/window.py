@@ -140,7 +140,7 @@ def segment_window(
     alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    prepared = prepare(window, settings, seed=seed)
+    prepared = prepare(window, settings)
     check_events_per_cluster(prepared.points.shape[0], k, window.name)
     t_ref = reference_time(prepared.t, settings.volume.t_ref)
     timings["prepare"] = time.perf_counter() - start
@@ -600,11 +600,9 @@ def smoothed_labels(
 ) -> np.ndarray:
     """``labels`` (N,) with every labelled event's label (of the events ``inner`` only, when
     given) Potts-smoothed (:mod:`spatialseg.mrf`, weight ``clustering.smoothness``, from its
-    memberships ``probabilities``, N x K): jointly, except for the events the fit's sample
-    left out (``prepared.unsampled``), each labelled given the others
-    (:func:`~spatialseg.mrf.conditional_labels`); neighbours in
-    space-time, the time scaled by the events' image speed (:func:`image_speed`; at least a
-    pixel over the window). Unlabelled events stay -1."""
+    memberships ``probabilities``, N x K); neighbours in space-time, the time scaled by the
+    events' image speed (:func:`image_speed`; at least a pixel over the window). Unlabelled
+    events stay -1."""
     index = np.flatnonzero(labels >= 0)
     if inner is not None:
         index = np.intersect1d(index, inner, assume_unique=True)
@@ -615,20 +613,9 @@ def smoothed_labels(
     span = max(float(t.max() - t.min()), 1e-9)
     speed = max(image_speed(prepared, result.thetas, result.probabilities, window.camera), 1 / span)
     xy = np.column_stack([ev.x[index], ev.y[index]])
-    where = mrf.space_time(xy, t, speed)
-    joint = np.ones(len(index), dtype=bool)
-    if prepared.unsampled is not None:
-        joint = ~prepared.unsampled[index]
-        joint |= joint.sum() < 2  # too few events to hold: smooth them all jointly
-    core, others = index[joint], index[~joint]
-    weight = clustering.smoothness
-    first, second = mrf.neighbour_pairs(where[joint])
+    first, second = mrf.neighbour_pairs(mrf.space_time(xy, t, speed))
     smoothed = labels.copy()
-    smoothed[core] = mrf.potts_labels(probabilities[core], first, second, weight)
-    if len(others):
-        smoothed[others] = mrf.conditional_labels(
-            probabilities[others], where[~joint], where[joint], smoothed[core], weight
-        )
+    smoothed[index] = mrf.potts_labels(probabilities[index], first, second, clustering.smoothness)
     return smoothed
 
 

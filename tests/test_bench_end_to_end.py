@@ -83,11 +83,10 @@ def test_run_overrides_name_the_optimiser_and_its_extras() -> None:
 
 def test_pass_time_is_positive_and_counts_each_event_once() -> None:
     """On a tiny two-window recording the pass takes time, covers at most every event once
-    (each window alone, not with its neighbours), not only the fit's sample of them, and
-    leaves numba's threads as they were."""
+    (each window alone, not with its neighbours) and leaves numba's threads as they were."""
     recording = spatialseg.simulate("interior", seed=0, window_events=1500, windows=2)
     threads = numba.get_num_threads()
-    settings = settings_from(compose_config("n_clusters=2", "clustering.fit_events=100"))
+    settings = settings_from(compose_config("n_clusters=2"))
     seconds, events = bench.pass_seconds(recording, settings, calls=3)
     assert 0 < seconds < 1
     assert len(recording.events) // 2 < events <= len(recording.events)

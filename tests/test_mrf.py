@@ -13,14 +13,7 @@ from scipy.spatial import cKDTree
 import optimizers
 from spatialseg.grid import VoxelGrid
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.mrf import (
-    FLOOR,
-    _expand,
-    conditional_labels,
-    neighbour_pairs,
-    potts_labels,
-    space_time,
-)
+from spatialseg.mrf import FLOOR, _expand, neighbour_pairs, potts_labels, space_time
 from spatialseg.points import Prepared
 from spatialseg.recording import Camera
 from spatialseg.scenes import load_scene
@@ -82,32 +75,6 @@ def test_an_isolated_weak_label_is_outvoted_and_a_confident_one_kept():
     assert p.argmax(axis=1)[45] == 1 and labels[45] == 0
     assert labels[54] == 1 and np.all(np.delete(labels, 54) == 0)
     assert np.array_equal(potts_labels(p, first, second, 0.0), p.argmax(axis=1))
-
-
-@pytest.mark.parametrize("seed", range(3))
-def test_events_held_to_fixed_neighbours_each_take_their_own_minimum(seed):
-    rng = np.random.default_rng(seed)
-    fixed, fixed_labels = rng.uniform(0, 5, (60, 3)), rng.integers(0, 3, 60)
-    points, p = rng.uniform(0, 5, (40, 3)), rng.dirichlet(np.ones(3), 40)
-    labels = conditional_labels(p, points, fixed, fixed_labels, 0.7, k=4)
-    nearest = cKDTree(fixed).query(points, k=4)[1]
-    for i, label in enumerate(labels):
-        energy = [
-            -np.log(max(p[i, j], FLOOR)) + 0.7 * np.sum(fixed_labels[nearest[i]] != j)
-            for j in range(3)
-        ]
-        assert energy[label] == pytest.approx(min(energy))
-    assert not np.array_equal(labels, p.argmax(axis=1))
-
-
-def test_a_weak_event_among_held_neighbours_takes_their_label_and_a_confident_one_not():
-    fixed = np.array([(x, y, 0.0) for x in range(5) for y in range(5)])
-    points = np.array([[2.0, 2.0, 0.5], [2.0, 3.0, 0.5]])
-    p = np.array([[0.4, 0.6], [1e-6, 1.0 - 1e-6]])
-    labels = conditional_labels(p, points, fixed, np.zeros(len(fixed), dtype=int), 0.3)
-    assert labels.tolist() == [0, 1]
-    assert conditional_labels(p, points, fixed, np.zeros(25, dtype=int), 0.0).tolist() == [1, 1]
-    assert conditional_labels(p, points, fixed[:0], np.zeros(0, dtype=int), 1.0).tolist() == [1, 1]
 
 
 @pytest.mark.parametrize("seed", range(3))

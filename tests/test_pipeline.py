@@ -246,26 +246,6 @@ def test_every_event_with_depth_is_fitted_without_the_background_filter():
     assert prepared.rest is not None and len(prepared.rest[0]) == 0
 
 
-def test_a_window_past_the_fit_limit_is_fitted_on_a_sample_and_labelled_whole(interior):
-    """clustering.fit_events: 1,000 per motion fit the two carts of a 4,000-event window on
-    2,000 of its supported events, drawn by the seed; every event with depth is labelled."""
-    cfg, rec = interior
-    sampled = settings_from({**cfg, "clustering": {**cfg["clustering"], "fit_events": 1000}})
-    _, window = next(rec.windows())
-    whole = prepare(window, settings_from(cfg))
-    draws = [prepare(window, sampled, seed=seed) for seed in (0, 0, 1)]
-    assert len(whole.points) > 2000 and all(len(d.points) == 2000 for d in draws)
-    assert np.array_equal(draws[0].valid, draws[1].valid)
-    assert not np.array_equal(draws[0].valid, draws[2].valid)
-    assert not np.any(draws[0].valid & ~whole.valid)  # a sample of the supported events
-    assert whole.unsampled is None
-    np.testing.assert_array_equal(draws[0].unsampled, whole.valid & ~draws[0].valid)
-    np.testing.assert_array_equal(draws[0].labelled, whole.labelled)
-    result = segment_window(window, sampled, optimizers.create("ssa_ga"), seed=0)
-    np.testing.assert_array_equal(result.labels >= 0, whole.labelled)
-    assert segmentation_metrics(result.labels, window.ground_truth.labels)["accuracy"] >= 0.95
-
-
 def test_the_depth_change_cap_bounds_vz_by_the_median_depth_not_by_outliers():
     """clustering.max_depth_change: a few far outliers in the depth (as in real depth maps)
     stretch the depth extent and so the box's vz; the cap limits |vz| to that share of the
