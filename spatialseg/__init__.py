@@ -13,7 +13,8 @@ from spatialseg.recording import Camera, DepthMap, GroundTruth, Keyframe, Record
 from spatialseg.settings import Settings, settings_from
 
 if TYPE_CHECKING:
-    from spatialseg.api import MotionSegmenter, Segmentation, read, segment, simulate, write
+    from spatialseg.api import Segmentation, read, segment, simulate, write
+    from spatialseg.estimator import MotionSegmenter
 
 __all__ = [
     "Camera",
@@ -33,8 +34,12 @@ __all__ = [
 ]
 __version__ = "0.1.0"
 
-#: The API's names, imported on first use (:func:`__getattr__`): the API loads the pipeline.
-_API = ("MotionSegmenter", "Segmentation", "read", "segment", "simulate", "write")
+#: The API's names and their modules, imported on first use (:func:`__getattr__`): the API
+#: loads the pipeline, the estimator scikit-learn.
+_API = {
+    "MotionSegmenter": "spatialseg.estimator",
+    **dict.fromkeys(("Segmentation", "read", "segment", "simulate", "write"), "spatialseg.api"),
+}
 
 # The simulator subpackage shares its name with the API's simulate(). Imported now, it
 # binds the package attribute ``simulate`` here and never again, so the name is freed for
@@ -44,9 +49,10 @@ del globals()["simulate"]
 
 
 def __getattr__(name: str) -> Any:
-    """The API's names (:mod:`spatialseg.api`), imported on first use (PEP 562)."""
+    """The API's names (:mod:`spatialseg.api`, :mod:`spatialseg.estimator`), imported on
+    first use (PEP 562)."""
     if name not in _API:
         raise AttributeError(f"module 'spatialseg' has no attribute {name!r}")
-    value = getattr(import_module("spatialseg.api"), name)
+    value = getattr(import_module(_API[name]), name)
     globals()[name] = value
     return value

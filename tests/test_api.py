@@ -75,10 +75,11 @@ def test_importing_the_package_leaves_the_renderer_unloaded() -> None:
     assert loaded == ["False", "True"]
 
 
-def test_a_run_from_the_command_line_leaves_scikit_learn_unloaded() -> None:
-    """Every module a command-line run imports (the pipeline, the outputs, the figures) works
-    without scikit-learn, whose import takes about a second; only the estimator loads it."""
-    first = "import spatialseg.cli, spatialseg.results, spatialseg.plots"
+def test_the_command_line_and_the_api_leave_scikit_learn_unloaded() -> None:
+    """Every module a command-line run imports (the pipeline, the outputs, the figures) and
+    the Python API's functions work without scikit-learn, whose import takes about a second;
+    only the estimator loads it."""
+    first = "import spatialseg.cli, spatialseg.results, spatialseg.plots; spatialseg.segment"
     then = "from spatialseg import MotionSegmenter"
     assert _loaded_before_and_after(first, "sklearn", then) == ["False", "True"]
 
