@@ -16,6 +16,8 @@ directories (``--config-dir DIR``, ``hydra.searchpath=[file://DIR]``).
 from __future__ import annotations
 
 import contextlib
+import copy
+import functools
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from importlib.resources import files
 from importlib.resources.abc import Traversable
@@ -163,7 +165,15 @@ def _hydra_set_aside() -> Iterator[None]:
 
 def compose_config(*overrides: str) -> dict[str, Any]:
     """The run config composed from ``conf/`` with Hydra ``overrides``, as the command line
-    builds it, as a plain dict (also inside a running Hydra app: its state is restored)."""
+    builds it, as a plain dict of the caller's own (also inside a running Hydra app: its
+    state is restored)."""
+    return copy.deepcopy(_composed(overrides))
+
+
+@functools.lru_cache(maxsize=64)
+def _composed(overrides: tuple[str, ...]) -> dict[str, Any]:
+    """:func:`compose_config`'s result, composed once per process and overrides: a compose
+    takes about 0.2 s, a fifth of segmenting a 15,000-event window through the Python API."""
     with _hydra_set_aside(), initialize_config_dir(str(conf_dir()), version_base="1.3"):
         cfg = compose("config", overrides=list(overrides))
     plain = OmegaConf.to_container(cfg, resolve=True)

@@ -3,6 +3,7 @@ one-line ValueError every bad argument raises before any work starts."""
 
 from __future__ import annotations
 
+import copy
 import importlib
 import subprocess
 import sys
@@ -176,6 +177,16 @@ def test_events_without_depth(recording: Recording, tmp_path: Path) -> None:
         spatialseg.segment(events_only)
     seg = spatialseg.segment(events_only, depth="constant", window={"events": 3000}, **QUICK)
     assert seg.labels.shape == (len(recording.events),) and len(seg.windows) == 2
+
+
+def test_a_composed_config_is_the_callers_own() -> None:
+    """The config is composed once per set of overrides and handed out as a copy: a caller
+    that edits its config (as segment does) leaves the next caller's untouched."""
+    first = compose_config("n_clusters=3")
+    untouched = copy.deepcopy(first)
+    first["clustering"]["max_iterations"] = -1
+    first["window"].clear()
+    assert compose_config("n_clusters=3") == untouched and untouched["n_clusters"] == 3
 
 
 def test_nullable_settings_exist() -> None:
