@@ -34,7 +34,9 @@ each optimiser is given as a ratio to the first one's at the same scene and size
 the numbers stand issue #27's targets, each with a yes/no where it applies: at most 40
 passes with a static camera and 100 with a moving one, from 250,000 events; a
 15,000-event window segmented in under 0.1 s (in process); the whole process with
-tracking on under 2 s for 65,000 events and under 3 s for 1,000,000.
+tracking on under 2 s for 65,000 events and under 3 s for 1,000,000; and, of a 65,000-event
+run with tracking on, under 1.5 s outside the segmentation (start-up, loading, figures,
+outputs, MLflow: each run's wall time less its own stage timings, median over the repeats).
 
 A scene yields only about 130,000-240,000 events in its 1 s at the default contrast
 threshold; windows larger than ``--dense-above`` events are simulated with the scene's
@@ -273,6 +275,9 @@ def summarise_runs(
         "total_s": float(np.median([r["timings"]["total"] for r in results])),
         "load_s": float(np.median([r["timings"]["load"] for r in results])),
         "segmentation_s": float(np.median([sum(s.values()) for s in per_run])),
+        "outside_tracking_s": float(
+            np.median([w - sum(stage_seconds(r).values()) for w, _, r in tracked])
+        ),
         "stages_s": stages,
         **{f"{key}_s": stages.get(key, 0.0) for key in ("prepare", "init", "cluster")},
         "evaluations": int(sum(sum(w["history"]["n_evals"]) for w in windows)),
@@ -306,11 +311,18 @@ def tracking_limit(row: Mapping[str, Any]) -> float | None:
     return {65_000: 2.0, 1_000_000: 3.0}.get(row["events"])
 
 
+def outside_limit(row: Mapping[str, Any]) -> float | None:
+    """Issue #27's longest time outside the segmentation (s) of a run with tracking on:
+    1.5 s for 65,000 events (None for other sizes)."""
+    return 1.5 if row["events"] == 65_000 else None
+
+
 #: Issue #27's targets: name, the row's measurement it bounds, the row's limit (or None).
 TARGETS: tuple[tuple[str, str, Callable[[Mapping[str, Any]], float | None]], ...] = (
     ("passes", "passes", pass_limit),
     ("window", "segmentation_s", window_limit),
     ("tracking", "wall_tracking_median_s", tracking_limit),
+    ("outside", "outside_tracking_s", outside_limit),
 )
 
 
@@ -344,6 +356,8 @@ COLUMNS = (
     ("wall, tracking off (s)", "---:"),
     ("wall, tracking on (s)", "---:"),
     ("tracking on target", "---"),
+    ("outside the segmentation, tracking on (s)", "---:"),
+    ("outside target", "---"),
     ("load (s)", "---:"),
     ("prepare (s)", "---:"),
     ("init (s)", "---:"),
@@ -360,7 +374,8 @@ ALIGN = "|" + "|".join(align for _, align in COLUMNS) + "|"
 LEGEND = (
     "Targets (issue #27): passes <= 40 (static camera) or <= 100 (moving camera) from "
     "250,000 events; a 15,000-event window under 0.1 s in process; the whole process with "
-    "tracking on under 2 s (65,000 events) and 3 s (1,000,000 events)."
+    "tracking on under 2 s (65,000 events) and 3 s (1,000,000 events), of which under 1.5 s "
+    "outside the segmentation (65,000 events)."
 )
 
 
@@ -380,6 +395,8 @@ def format_row(row: Mapping[str, Any], first_cluster_s: float) -> str:
         f"{row['wall_median_s']:.2f}",
         f"{row['wall_tracking_median_s']:.2f}",
         format_target(row, "tracking"),
+        f"{row['outside_tracking_s']:.2f}",
+        format_target(row, "outside"),
         f"{row['load_s']:.2f}",
         f"{row['prepare_s']:.2f}",
         f"{row['init_s']:.2f}",
