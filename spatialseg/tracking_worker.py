@@ -137,20 +137,11 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
             return
 
 
-def yield_the_cores() -> None:
-    """Run at the lowest CPU priority: importing MLflow and opening its store take seconds of
-    CPU, which on a machine with few cores the job's segmentation would otherwise lose
-    (65,000 events on 2 cores: 5.8 -> 5.0 s end to end, docs/performance.md)."""
-    with contextlib.suppress(AttributeError, OSError):  # no os.nice on Windows
-        os.nice(19)
-
-
 def main() -> None:
     """Serve the job on stdin and stdout, leaving its signals to it; exit at once after,
     without tearing MLflow's modules down (most of a second the job would wait for)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    yield_the_cores()
     serve(sys.stdin.buffer, sys.stdout.buffer)
     os._exit(0)
 

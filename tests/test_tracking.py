@@ -444,14 +444,3 @@ def test_the_tracking_process_stamps_metrics_with_the_jobs_time():
     measured = 1_000_000  # ms: long before now
     assert worker.handle(("metrics", [("window0/variance", 2.5, 0)], measured))
     assert worker._client.logged == [("run", "window0/variance", 2.5, measured, 0)]
-
-
-def test_the_tracking_process_runs_at_the_lowest_priority():
-    """The MLflow process gives the job's segmentation the cores first (its import and store
-    cost seconds of CPU): after ``yield_the_cores`` its niceness is the highest, 19."""
-    code = (
-        "import os; from spatialseg.tracking_worker import yield_the_cores; "
-        "yield_the_cores(); print(os.nice(0))"
-    )
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert done.stdout.strip() == "19"
