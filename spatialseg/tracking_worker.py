@@ -47,11 +47,16 @@ class Worker:
         self._out = out
         self._client: Any = None
         self._run_id = ""
+        self.gone = False  # the job's end of the pipe closed: no one reads the answers
 
     def reply(self, *message: object) -> None:
-        """Send one answer to the job."""
-        pickle.dump(message, self._out)
-        self._out.flush()
+        """Send one answer to the job; a job that died meanwhile (its pipe closed) leaves
+        :attr:`gone` set, not an error that would end this process with the run open."""
+        try:
+            pickle.dump(message, self._out)
+            self._out.flush()
+        except OSError:
+            self.gone = True
 
     def start(self, job: dict[str, Any]) -> None:
         """Create the run (a child of the sweep's parent, if any) with the job's start time,
@@ -129,12 +134,14 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
     while True:
         try:
             message = pickle.load(inp)
-        except EOFError:
-            with contextlib.suppress(OSError):  # the job is gone, and its output with it
-                worker.abandon()
-            return
+        except EOFError:  # the job is gone, and its output with it
+            break
         if not worker.handle(message):
             return
+        if worker.gone:  # the job died while this process answered it
+            break
+    with contextlib.suppress(OSError):
+        worker.abandon()
 
 
 def main() -> None:

@@ -444,3 +444,37 @@ def test_the_tracking_process_stamps_metrics_with_the_jobs_time():
     measured = 1_000_000  # ms: long before now
     assert worker.handle(("metrics", [("window0/variance", 2.5, 0)], measured))
     assert worker._client.logged == [("run", "window0/variance", 2.5, measured, 0)]
+
+
+def test_a_job_gone_while_it_is_answered_leaves_its_run_killed(monkeypatch):
+    """The job died between sending a request and reading its answer (its pipe closed): the
+    tracking process ends the run KILLED, as when the job dies between requests, instead of
+    failing on the closed pipe and leaving the run RUNNING."""
+    import io
+    import pickle
+
+    from spatialseg import tracking_worker
+
+    class Store:
+        tracking_uri = "sqlite:///unused.db"
+
+        def __init__(self):
+            self.ended = []
+
+        def set_terminated(self, run_id, status):
+            self.ended.append((run_id, status))
+
+    class ClosedPipe(io.BytesIO):
+        def write(self, data):
+            raise BrokenPipeError(32, "Broken pipe")
+
+    store = Store()
+
+    def start(self, job):
+        self._client, self._run_id = store, "run"
+        self.reply("started", "run", store.tracking_uri)
+
+    monkeypatch.setattr(tracking_worker.Worker, "start", start)
+    requests = io.BytesIO(pickle.dumps(("start", {})) + pickle.dumps(("outputs", ".")))
+    tracking_worker.serve(requests, ClosedPipe())
+    assert store.ended == [("run", "KILLED")]
