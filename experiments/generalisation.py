@@ -17,7 +17,8 @@ relative velocity error (metric models); the share of signal events left unassig
 segmentation's wall time on one thread (``--jobs`` scenes run side by side). ``--fix``
 sets a modifier for every scene instead of drawing it (``depth_bias``, ``depth_flicker``,
 ``holes``, ``noise``). The JSON is rewritten after every scene; ``--resume`` skips the
-scenes it already holds (a killed run goes on where it stopped). ``--optimiser-seeds N``
+scenes it already holds (a killed run goes on where it stopped; SIGTERM or Ctrl-C ends the
+``--jobs`` worker processes too). ``--optimiser-seeds N``
 segments each scene with N optimiser seeds, its own first (:func:`optimiser_seeds`): the
 seed alone moves one recording's accuracy by up to 0.28, so comparing two settings over
 several seeds per scene measures the settings, not the seeds. ``--totals`` records, per
@@ -33,14 +34,15 @@ JSON holds one row per scene, model and optimiser seed.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import itertools
 import json
 import multiprocessing
+import signal
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -359,6 +361,22 @@ def _fixed_modifiers(items: list[str]) -> dict[str, float]:
     return fixed
 
 
+def _workers(jobs: int) -> contextlib.AbstractContextManager[Any]:
+    """A pool of ``jobs`` spawned processes (no fork of a process running OpenMP) on one
+    thread each, terminated when its block exits however it exits; None for one job, which
+    runs here on one thread."""
+    if jobs == 1:
+        one_thread()
+        return contextlib.nullcontext()
+    return multiprocessing.get_context("spawn").Pool(jobs, initializer=one_thread)
+
+
+def _exit_terminated(signum: int, frame: Any) -> None:
+    """SIGTERM: leave through the pool's block, which terminates its workers (killed
+    outright, the parent would leave them running their scenes), with status 143."""
+    sys.exit(128 + signum)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--split", choices=sorted(SPLITS), required=True)
@@ -406,11 +424,9 @@ def main() -> None:
         for s in seeds
         if (f, s) not in done
     ]
-    spawn = multiprocessing.get_context("spawn")  # no fork of a process running OpenMP
-    with ProcessPoolExecutor(args.jobs, mp_context=spawn, initializer=one_thread) as pool:
-        if args.jobs == 1:
-            one_thread()
-        results = pool.map(run_scene, tasks) if args.jobs > 1 else map(run_scene, tasks)
+    signal.signal(signal.SIGTERM, _exit_terminated)  # a batch system's stop ends the workers
+    with _workers(args.jobs) as pool:
+        results = map(run_scene, tasks) if pool is None else pool.imap(run_scene, tasks)
         for count, scene_rows in enumerate(results, start=1):
             rows.extend(scene_rows)
             scores = ", ".join(f"{r['model']} {r['accuracy']:.3f}" for r in scene_rows)

@@ -125,3 +125,47 @@ def test_failure_table_splits_failed_runs_by_which_total_is_higher():
     ]
     table = generalisation.failure_table(rows)
     assert "| many | 4 | 3 | 1 | 2 |" in table
+
+
+def _children(pid: int) -> list[int]:
+    """The processes ``pid`` started (Linux /proc)."""
+    tasks = Path(f"/proc/{pid}/task")
+    found = [f.read_text().split() for f in tasks.glob("*/children") if f.exists()]
+    return [int(p) for part in found for p in part]
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie."""
+    stat = Path(f"/proc/{pid}/stat")
+    try:
+        return stat.read_text().split(") ")[1][0] != "Z"
+    except (FileNotFoundError, IndexError):
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="reads Linux /proc")
+def test_sigterm_ends_the_run_and_its_worker_processes(tmp_path):
+    """SIGTERM (a batch system's stop) ends the run with status 143 and terminates its
+    worker processes, which would otherwise go on segmenting with no one to report to."""
+    import signal
+    import subprocess
+    import time
+
+    script = Path(generalisation.__file__)
+    command = [
+        sys.executable, str(script), "--split", "dev", "--per-family", "2",
+        "--families", "equal_motion", "--models", f"spatial:{FAST}", "--jobs", "2",
+        "--cache", str(tmp_path),
+    ]  # fmt: skip
+    with subprocess.Popen(command, cwd=script.parent, stderr=subprocess.PIPE) as proc:
+        deadline = time.monotonic() + 60
+        while len(workers := _children(proc.pid)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len(workers) >= 2, "the pool's workers did not start"
+        time.sleep(1.0)  # the workers are drawing their scenes
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 128 + signal.SIGTERM
+    deadline = time.monotonic() + 10
+    while any(_alive(w) for w in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(_alive(w) for w in workers)
