@@ -39,7 +39,6 @@ import hashlib
 import itertools
 import json
 import multiprocessing
-import signal
 import sys
 import tempfile
 import time
@@ -51,6 +50,7 @@ import numpy as np
 from _common import compose_config, split_overrides, write_json
 from hydra.utils import instantiate
 
+from spatialseg.interrupts import stop_on_signals
 from spatialseg.io import read_any, write_recording
 from spatialseg.metrics import recording_metrics
 from spatialseg.pipeline import segment_loaded
@@ -371,12 +371,6 @@ def _workers(jobs: int) -> contextlib.AbstractContextManager[Any]:
     return multiprocessing.get_context("spawn").Pool(jobs, initializer=one_thread)
 
 
-def _exit_terminated(signum: int, frame: Any) -> None:
-    """SIGTERM: leave through the pool's block, which terminates its workers (killed
-    outright, the parent would leave them running their scenes), with status 143."""
-    sys.exit(128 + signum)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--split", choices=sorted(SPLITS), required=True)
@@ -424,8 +418,9 @@ def main() -> None:
         for s in seeds
         if (f, s) not in done
     ]
-    signal.signal(signal.SIGTERM, _exit_terminated)  # a batch system's stop ends the workers
-    with _workers(args.jobs) as pool:
+    # SIGTERM (a batch system's stop) unwinds through the pool's block, which terminates its
+    # workers: killed outright, the parent would leave them running their scenes
+    with stop_on_signals(), _workers(args.jobs) as pool:
         results = map(run_scene, tasks) if pool is None else pool.imap(run_scene, tasks)
         for count, scene_rows in enumerate(results, start=1):
             rows.extend(scene_rows)
