@@ -35,7 +35,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 import optimizers
 from optimizers import preset_hyperparameters
-from spatialseg.checks import unknown_key
+from spatialseg.checks import integer_setting, unknown_key
 from spatialseg.settings import SECTIONS, default_tree
 
 __all__ = [
@@ -258,6 +258,10 @@ def validate_config(
             "no scene selected; add +scene=NAME with NAME one of: "
             + ", ".join(group_options("scene", roots))
         )
+    try:
+        integer_setting(cfg.get("seed", 0), "seed", 0)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
     for key, value in cfg.items():
         if key in _HYDRA_KEYS:
             continue

@@ -35,6 +35,8 @@ def test_help_works_outside_the_checkout(tmp_path):
         (("+scene=interior", "clustering.tol=[1"), "cannot parse an override"),
         (("+scene=recording",), "scene=recording needs a path"),
         (("+scene=interior", "init.tiles.refit=nope"), "init.tiles.refit: unknown optimizer"),
+        (("+scene=interior", "seed=abc"), "seed must be an integer >= 0, got 'abc'"),
+        (("+scene=interior", "seed=-1"), "seed must be an integer >= 0, got -1"),
     ],
 )
 def test_user_mistakes_give_one_line(tmp_path, args, message):

@@ -31,6 +31,7 @@ def test_cli_writes_a_recording_with_preview(tmp_path):
         (["+scene=interior", "out=x", "window.events=0"], "window.events must be a positive"),
         (["+scene=interior", "out=x", "scene.duration=-1"], "duration must be > 0"),
         (["+scene=recording", "out=x"], "is not simulated"),
+        (["+scene=interior", "out=x", "seed=abc"], "seed must be an integer >= 0, got 'abc'"),
     ],
 )
 def test_cli_user_mistake_is_one_error_line_and_exit_2(tmp_path, args, message):
