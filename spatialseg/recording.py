@@ -249,8 +249,13 @@ def _source(recording: Recording) -> str:
 
 
 def check_event_times(recording: Recording) -> None:
-    """Raise a one-line error when the events' times are not seconds (:func:`check_time_units`),
-    before a depth source spends any work on them."""
+    """Raise a one-line error when the recording holds no events or their times are not
+    seconds (:func:`check_time_units`), before a depth source spends any work on them."""
+    if not len(recording.events):
+        raise ValueError(
+            f"{_source(recording)}: the recording holds no events, nothing to segment; "
+            "check that its events file is not empty"
+        )
     check_time_units(_source(recording), "events", recording.events.t)
 
 

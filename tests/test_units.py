@@ -63,6 +63,13 @@ def test_event_times_in_microseconds_or_nanoseconds_are_refused(span, message):
         check_event_times(_recording(0.0, span))
 
 
+def test_a_recording_without_events_is_refused_as_such():
+    rec = _recording(0.0, 2.0)
+    empty = replace(rec, events=rec.events.select(np.zeros(len(rec.events), dtype=bool)))
+    with pytest.raises(ValueError, match="rec: the recording holds no events, nothing to segment"):
+        check_event_times(empty)
+
+
 def test_depth_map_times_in_microseconds_are_refused():
     rec = _recording(0.0, 2.0, maps=(0.0, 2.4e6))
     check_event_times(rec)
