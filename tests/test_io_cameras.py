@@ -283,7 +283,7 @@ def test_missing_intrinsics_and_size_mismatch(tmp_path: Path) -> None:
     write_events(_events(10), tmp_path / "e.txt")
     with pytest.raises(ValueError) as exc:
         read_any(tmp_path / "e.txt", fov_deg=70.0)
-    _one_line_error(exc, "e.txt", "sensor size unknown")
+    _one_line_error(exc, "e.txt", "sensor size unknown", "Python: read(path, camera={...})")
 
 
 def _truncated_aedat(path: Path) -> Path:

@@ -45,7 +45,8 @@ def resolve_size(path: Path, stored: Size | None, given: Size | None) -> Size:
     if size is None:
         raise ValueError(
             f"{path}: sensor size unknown (the file does not store it); "
-            "give width and height (scene.camera.width/height)"
+            "give width and height (command line: scene.camera.width/height; Python: "
+            "read(path, camera={...}) with width and height)"
         )
     return size
 
