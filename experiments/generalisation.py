@@ -3,7 +3,8 @@
     python experiments/generalisation.py --split dev|heldout --per-family N
         [--models spatial planar spatial:clustering.max_iterations=10]
         [--families opposite many ...] [--json OUT] [--jobs J] [--cache DIR]
-        [--fix depth_flicker=0.1 ...] [--resume] [--optimiser-seeds N] [--totals]
+        [--fix depth_flicker=0.1 ...] [--resume] [--optimiser-seeds N] [--first-run R]
+        [--totals]
 
 Seeds of ``dev`` are 0-999, those of ``heldout`` 1000 and above: choose defaults on
 ``dev`` only, report both. Each scene is drawn from its family and seed
@@ -21,7 +22,8 @@ scenes it already holds (a killed run goes on where it stopped; SIGTERM or Ctrl-
 ``--jobs`` worker processes too). ``--optimiser-seeds N``
 segments each scene with N optimiser seeds, its own first (:func:`optimiser_seeds`): the
 seed alone moves one recording's accuracy by up to 0.28, so comparing two settings over
-several seeds per scene measures the settings, not the seeds. ``--totals`` records, per
+several seeds per scene measures the settings, not the seeds; ``--first-run 1`` runs the
+same settings on other seeds, the spread a change must beat. ``--totals`` records, per
 spatial window, the total contrast of the segmentation found and of the truth
 (:func:`window_totals`) and prints which failed runs the search failed (the truth scores
 higher: a better search would find it) and which the objective failed.
@@ -86,13 +88,14 @@ def split_seeds(split: str, count: int) -> list[int]:
     return list(range(first, first + count))
 
 
-def optimiser_seeds(seed: int, count: int) -> list[int]:
-    """The ``count`` optimiser seeds scene ``seed`` is segmented with, its own first.
+def optimiser_seeds(seed: int, count: int, first_run: int = 0) -> list[int]:
+    """The ``count`` optimiser seeds scene ``seed`` is segmented with, its own first (runs
+    from ``first_run`` on: run 0 is its own seed, run r its seed plus r strides).
 
     Decision: on one recording the optimiser's seed alone moved the accuracy by 0.11-0.28
     (docs/results.md, "The optimiser's seed"), so a change judged on one seed per scene
     is judged partly on luck; several seeds per scene measure its expected effect."""
-    return [seed + r * OPTIMISER_SEED_STRIDE for r in range(count)]
+    return [seed + r * OPTIMISER_SEED_STRIDE for r in range(first_run, first_run + count)]
 
 
 def _draw_key(drawn: FamilyScene) -> str:
@@ -204,16 +207,16 @@ def recording_totals(
 
 
 def run_scene(
-    task: tuple[str, int, list[str], dict, Path | None, int, bool],
+    task: tuple[str, int, list[str], dict, Path | None, int, int, bool],
 ) -> list[dict[str, Any]]:
     """One scene segmented by every model, with each of its optimiser seeds
     (:func:`optimiser_seeds`): a JSON row each; with ``totals`` the spatial rows also hold
     every window's found and true total contrast (:func:`recording_totals`)."""
-    family, seed, models, fixed, cache, repeats, totals = task
+    family, seed, models, fixed, cache, repeats, first_run, totals = task
     drawn = draw_scene(family, seed, **fixed)
     recording = load_scene_recording(drawn, cache)
     rows = []
-    for variant, run_seed in itertools.product(models, optimiser_seeds(seed, repeats)):
+    for variant, run_seed in itertools.product(models, optimiser_seeds(seed, repeats, first_run)):
         model, _, extra = variant.partition(":")
         cfg = compose_config(
             f"model={model}", f"n_clusters={drawn.n_motions}", f"seed={run_seed}",
@@ -391,6 +394,14 @@ def main() -> None:
         "the table's statistics are over every row",
     )
     parser.add_argument(
+        "--first-run",
+        type=int,
+        default=0,
+        metavar="R",
+        help="the optimiser seeds start at run R (the scene's seed + R x 1,000,000; 0: its "
+        "own): the same settings run at R=1 measure what the seed alone moves",
+    )
+    parser.add_argument(
         "--totals",
         action="store_true",
         help="also record, per spatial window, the total contrast of the segmentation found "
@@ -399,13 +410,17 @@ def main() -> None:
     args = parser.parse_args()
     if args.per_family < 1 or args.jobs < 1 or args.optimiser_seeds < 1:
         parser.error("--per-family, --jobs and --optimiser-seeds must be >= 1")
+    if args.first_run < 0:
+        parser.error("--first-run must be >= 0")
     if args.resume and args.json is None:
         parser.error("--resume needs --json, the file to resume")
     try:
         seeds = split_seeds(args.split, args.per_family)
         fixed = _fixed_modifiers(args.fix)
         rows = (
-            resumed_rows(args.json, args.split, fixed, args.optimiser_seeds) if args.resume else []
+            resumed_rows(args.json, args.split, fixed, args.optimiser_seeds, args.first_run)
+            if args.resume
+            else []
         )
     except ValueError as exc:
         parser.error(str(exc))
@@ -413,7 +428,7 @@ def main() -> None:
         args.cache.mkdir(parents=True, exist_ok=True)
     done = {(r["family"], r["seed"]) for r in rows}
     tasks = [
-        (f, s, args.models, fixed, args.cache, args.optimiser_seeds, args.totals)
+        (f, s, args.models, fixed, args.cache, args.optimiser_seeds, args.first_run, args.totals)
         for f in args.families
         for s in seeds
         if (f, s) not in done
@@ -437,6 +452,7 @@ def main() -> None:
                     "split": args.split,
                     "fixed": fixed,
                     "optimiser_seeds": args.optimiser_seeds,
+                    "first_run": args.first_run,
                     "rows": rows,
                 }
                 write_json(args.json, payload)
@@ -446,17 +462,24 @@ def main() -> None:
         print(failure_table(rows))
 
 
-def resumed_rows(path: Path | None, split: str, fixed: dict, repeats: int) -> list[dict[str, Any]]:
-    """The rows an earlier run of the same split, modifiers and number of optimiser seeds
-    wrote to ``path`` (none if there is no such file; a file from before the option ran one)."""
+def resumed_rows(
+    path: Path | None, split: str, fixed: dict, repeats: int, first_run: int = 0
+) -> list[dict[str, Any]]:
+    """The rows an earlier run of the same split, modifiers and optimiser seeds wrote to
+    ``path`` (none if there is no such file; a file from before an option ran its default)."""
     if path is None or not path.exists():
         return []
     earlier = json.loads(path.read_text())
-    same = (earlier.get("split"), earlier.get("fixed"), earlier.get("optimiser_seeds", 1))
-    if same != (split, fixed, repeats):
+    same = (
+        earlier.get("split"),
+        earlier.get("fixed"),
+        earlier.get("optimiser_seeds", 1),
+        earlier.get("first_run", 0),
+    )
+    if same != (split, fixed, repeats, first_run):
         raise ValueError(
-            f"--resume: {path} holds another split, other --fix settings or another "
-            "--optimiser-seeds"
+            f"--resume: {path} holds another split, other --fix settings or other "
+            "--optimiser-seeds or --first-run"
         )
     return earlier["rows"]
 

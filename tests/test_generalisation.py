@@ -36,7 +36,9 @@ def test_fixed_modifiers_are_checked():
 
 def test_a_scene_read_back_from_disk_is_scored_per_model(tmp_path):
     models = [f"spatial:{FAST}", f"planar:{FAST}"]
-    rows = generalisation.run_scene(("equal_motion", 1, models, {"noise": 0.1}, tmp_path, 1, False))
+    rows = generalisation.run_scene(
+        ("equal_motion", 1, models, {"noise": 0.1}, tmp_path, 1, 0, False)
+    )
     assert [r["model"] for r in rows] == models
     assert [r["optimiser_seed"] for r in rows] == [1, 1]  # the scene's own seed
     for row in rows:
@@ -46,7 +48,7 @@ def test_a_scene_read_back_from_disk_is_scored_per_model(tmp_path):
     assert rows[0]["velocity_error"] is not None and rows[1]["velocity_error"] is None
     assert len(list(tmp_path.iterdir())) == 1  # the cached recording, reused by a rerun
     again = generalisation.run_scene(
-        ("equal_motion", 1, models[:1], {"noise": 0.1}, tmp_path, 2, False)
+        ("equal_motion", 1, models[:1], {"noise": 0.1}, tmp_path, 2, 0, False)
     )
     assert again[0]["accuracy"] == rows[0]["accuracy"]
     assert [r["optimiser_seed"] for r in again] == [1, 1_000_001]
@@ -62,12 +64,18 @@ def test_optimiser_seeds_start_at_the_scenes_own_and_never_meet_another_scenes()
     assert len(dev) == 3000 and not dev & set(generalisation.split_seeds("heldout", 1000))
 
 
+def test_a_later_first_run_skips_the_scenes_own_seed():
+    assert generalisation.optimiser_seeds(7, 2, first_run=1) == [1_000_007, 2_000_007]
+
+
 def test_resume_refuses_a_file_of_another_number_of_optimiser_seeds(tmp_path):
     path = tmp_path / "rows.json"
     path.write_text('{"split": "dev", "fixed": {}, "rows": [{"seed": 0}]}')
     assert generalisation.resumed_rows(path, "dev", {}, 1) == [{"seed": 0}]
-    with pytest.raises(ValueError, match="another --optimiser-seeds"):
+    with pytest.raises(ValueError, match="other --optimiser-seeds or --first-run"):
         generalisation.resumed_rows(path, "dev", {}, 3)
+    with pytest.raises(ValueError, match="other --optimiser-seeds or --first-run"):
+        generalisation.resumed_rows(path, "dev", {}, 1, first_run=1)
 
 
 def test_motions_found_is_the_share_with_as_many_objects_as_motions():
@@ -83,7 +91,9 @@ def test_motions_found_is_the_share_with_as_many_objects_as_motions():
 
 def test_totals_give_each_spatial_window_the_found_and_the_true_total(tmp_path):
     models = [f"spatial:{FAST}", f"planar:{FAST}"]
-    spatial, planar = generalisation.run_scene(("equal_motion", 1, models, {}, tmp_path, 1, True))
+    spatial, planar = generalisation.run_scene(
+        ("equal_motion", 1, models, {}, tmp_path, 1, 0, True)
+    )
     assert "totals" not in planar  # true velocities are 3-D: the spatial model's only
     assert len(spatial["totals"]) == spatial["windows"]
     for found, truth in spatial["totals"]:
