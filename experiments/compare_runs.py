@@ -98,18 +98,19 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
     return payload["rows"]
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line: two runs' JSON files, the model's kind and the step."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("before", type=Path)
     parser.add_argument("after", type=Path)
     parser.add_argument("--model", default="spatial", help="the model's kind: spatial or planar")
     parser.add_argument("--step", type=float, default=0.02, help="a scene moved by more than this")
-    return parser.parse_args(argv)
+    return parser
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = parse_args(argv)
-    parser = argparse.ArgumentParser(prog="compare_runs.py")
+    parser = build_parser()
+    args = parser.parse_args(argv)
     try:
         runs = [scene_means(read_rows(p), args.model) for p in (args.before, args.after)]
         print(compare(*runs, args.step))
