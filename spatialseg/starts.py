@@ -17,7 +17,7 @@ import numpy as np
 
 import optimizers
 from spatialseg import hypotheses, motion_init
-from spatialseg.clustering import maximize_contrast, p_step_from_every_event
+from spatialseg.clustering import p_step_from_every_event
 from spatialseg.grid import project_jacobian
 from spatialseg.points import (
     ModelEvaluator,
@@ -302,66 +302,3 @@ def previous_init(
     return motion_init.InitResult(
         spatial_velocities(thetas), np.full((len(labels), 3), np.nan), 0, False, labels
     )
-
-
-#: Evaluations of the run's optimiser per motion of the ``dominant`` start.
-DOMINANT_EVALS = 120
-
-
-def otsu_split(values: np.ndarray, bins: int = 256) -> float:
-    """The threshold between the two classes of ``values`` that maximises their between-class
-    variance (Otsu, 1979): a split with no parameter for a bimodal response."""
-    values = np.asarray(values, dtype=np.float64)
-    if values.size < 2 or values.min() == values.max():
-        return float(values.min()) if values.size else 0.0
-    counts, edges = np.histogram(values, bins=bins)
-    centres = 0.5 * (edges[:-1] + edges[1:])
-    weight = np.cumsum(counts)
-    mass = np.cumsum(counts * centres)
-    total, total_mass = weight[-1], mass[-1]
-    low = weight[:-1]
-    high = total - low
-    with np.errstate(divide="ignore", invalid="ignore"):
-        between = (total_mass * low / total - mass[:-1]) ** 2 / (low * high)
-    between = np.where((low > 0) & (high > 0), between, -1.0)
-    return float(edges[int(np.argmax(between)) + 1])
-
-
-@register_start("dominant")
-def _dominant_start(given: StartInput) -> motion_init.InitResult:
-    """Initial motions one at a time, the dominant first: the velocity that sharpens the
-    remaining events most (the run's optimiser over the whole search box), the events it
-    sharpens (their smoothed warped-event density above an Otsu split of its logarithm)
-    taken out, and the next motion fitted on the rest; the last takes what is left.
-
-    Decision: after Yamaki, Shiba, Gallego and Aoki (CVPRW 2025), who segment by fitting the
-    dominant motion and recursing on the events it does not explain; a start needs no
-    per-tile or per-event flow, so it holds where tiles cannot tell motions apart."""
-    prepared, settings, k = given.prepared, given.settings, given.k
-    if given.optimizer is None:
-        raise ValueError("init.method=dominant needs the run's optimizer")
-    t_ref = reference_time(prepared.t, settings.volume.t_ref)
-    sigmas, stride = p_step_settings(settings.clustering, alone=len(given.window.depth_maps) == 2)
-    labels = np.full(len(prepared.points), -1, dtype=np.int64)
-    remaining = np.arange(len(prepared.points))
-    thetas = np.zeros((k, prepared.dim))
-    seeds = np.random.default_rng(given.seed).integers(0, 2**31 - 1, size=k)
-    x0 = np.zeros(prepared.dim)
-    for j in range(k):
-        if len(remaining) == 0:
-            break
-        evaluator = window_objective(prepared, t_ref, settings, remaining)
-        evaluator.set_weights(np.ones(len(remaining)))
-        thetas[j] = maximize_contrast(
-            evaluator, given.optimizer, x0, given.bounds, DOMINANT_EVALS, int(seeds[j])
-        )[0]
-        if j == k - 1:
-            labels[remaining] = j
-            break
-        response = evaluator.p_step(thetas[j], sigmas, stride)[0]
-        level = np.log(np.maximum(response, 1e-12))
-        explained = level > otsu_split(level)
-        labels[remaining[explained]] = j
-        remaining = remaining[~explained]
-    flows = np.full((len(labels), 3), np.nan)
-    return motion_init.InitResult(spatial_velocities(thetas), flows, 0, False, labels)

@@ -123,11 +123,3 @@ def test_a_registered_start_is_selectable_with_no_other_edit(monkeypatch, window
     for taken in ("tiles", "auto", "previous", ""):
         with pytest.raises(ValueError, match="start"):
             register_start(taken)(still)
-
-
-def test_otsu_split_falls_between_the_two_modes():
-    rng = np.random.default_rng(0)
-    low, high = rng.normal(0.0, 0.3, 500), rng.normal(5.0, 0.3, 200)
-    level = starts.otsu_split(np.concatenate([low, high]))
-    assert low.max() < level < high.min()
-    assert starts.otsu_split(np.full(5, 2.0)) == 2.0
