@@ -2,15 +2,19 @@
 
     python experiments/compare_runs.py BEFORE.json AFTER.json [--model spatial] [--step 0.02]
     python experiments/compare_runs.py docs/data/heldout_session41.json new.json --model spatial
+    python experiments/compare_runs.py base.json variants.json \
+        --after-variant "spatial:init.auto=[image_flow,dominant,previous]"
 
 Pairs the rows of two ``generalisation.py --json`` files by family and scene seed (the
-model's kind, the part of its name before ``:``, must match ``--model``; each file may hold
-one variant of it) and prints, per family and over all pairs, the mean accuracy before and
-after, the paired difference with its standard error, the scenes that moved up and down by
-more than ``--step``, and the summed time's ratio. A scene run with several optimiser seeds
-counts as the mean of its rows. Decision: the same settings run again on other optimiser
-seeds (``generalisation.py --first-run 1``) move single recordings by up to 0.28, so a
-change is read against that run's spread, not against zero.
+model's kind, the part of its name before ``:``, must match ``--model``; a file holding
+several variants of it names the one compared with ``--before-variant`` or
+``--after-variant``, the variant's whole name) and prints, per family and over all pairs,
+the mean accuracy before and after, the paired difference with its standard error, the
+scenes that moved up and down by more than ``--step``, and the summed time's ratio. A
+scene run with several optimiser seeds counts as the mean of its rows. Decision: the same
+settings run again on other optimiser seeds (``generalisation.py --first-run 1``) move
+single recordings by up to 0.28, so a change is read against that run's spread, not
+against zero.
 """
 
 from __future__ import annotations
@@ -28,13 +32,23 @@ import numpy as np
 Scene = tuple[str, int]
 
 
-def scene_means(rows: list[dict[str, Any]], model: str) -> dict[Scene, tuple[float, float]]:
-    """Each scene's mean accuracy and summed time over the rows of ``model``'s kind; one
-    variant of that kind per file, else a ValueError naming them."""
+def scene_means(
+    rows: list[dict[str, Any]], model: str, variant: str | None = None
+) -> dict[Scene, tuple[float, float]]:
+    """Each scene's mean accuracy and summed time over the rows of ``model``'s kind: of its
+    one variant in the file, or of ``variant`` (a whole model name); else a ValueError
+    naming the file's variants."""
     kept = [r for r in rows if r["model"].partition(":")[0] == model]
     variants = sorted({r["model"] for r in kept})
-    if len(variants) > 1:
-        raise ValueError(f"several {model} variants in one file: {', '.join(variants)}")
+    if variant is not None:
+        if variant not in variants:
+            raise ValueError(f"no rows of {variant!r}; the file has: {', '.join(variants)}")
+        kept = [r for r in kept if r["model"] == variant]
+    elif len(variants) > 1:
+        raise ValueError(
+            f"several {model} variants in one file: {', '.join(variants)}; "
+            "name one with --before-variant or --after-variant"
+        )
     grouped: dict[Scene, list[dict[str, Any]]] = defaultdict(list)
     for row in kept:
         grouped[(row["family"], int(row["seed"]))].append(row)
@@ -104,6 +118,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("before", type=Path)
     parser.add_argument("after", type=Path)
     parser.add_argument("--model", default="spatial", help="the model's kind: spatial or planar")
+    for side in ("before", "after"):
+        parser.add_argument(
+            f"--{side}-variant", help=f"the variant of {side}'s file compared (its whole name)"
+        )
     parser.add_argument("--step", type=float, default=0.02, help="a scene moved by more than this")
     return parser
 
@@ -112,7 +130,13 @@ def main(argv: list[str] | None = None) -> None:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        runs = [scene_means(read_rows(p), args.model) for p in (args.before, args.after)]
+        runs = [
+            scene_means(read_rows(path), args.model, variant)
+            for path, variant in (
+                (args.before, args.before_variant),
+                (args.after, args.after_variant),
+            )
+        ]
         print(compare(*runs, args.step))
     except (OSError, ValueError) as exc:
         parser.exit(2, f"error: {exc}\n")

@@ -24,6 +24,21 @@ def test_scenes_pair_by_family_and_seed_and_average_their_optimiser_seeds():
         compare_runs.scene_means([*rows, _row("many", 1, 0.5, "spatial:seed=3")], "spatial")
 
 
+def test_a_file_of_several_variants_compares_the_one_named(tmp_path, capsys):
+    base, variants = tmp_path / "base.json", tmp_path / "variants.json"
+    base.write_text(json.dumps({"rows": [_row("many", 0, 0.5), _row("many", 1, 0.7)]}))
+    rows = [_row("many", s, 0.9, "spatial:a=1") for s in (0, 1)]
+    rows += [_row("many", s, 0.1, "spatial:a=2") for s in (0, 1)]
+    variants.write_text(json.dumps({"rows": rows}))
+    compare_runs.main([str(base), str(variants), "--after-variant", "spatial:a=2"])
+    assert "| all | 2 | 0.600 | 0.100 | -0.500 (0.100) | 0 / 2 |" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as stop:
+        compare_runs.main([str(base), str(variants), "--after-variant", "spatial:a=3"])
+    assert stop.value.code == 2
+    message = capsys.readouterr().err
+    assert message.count("\n") == 1 and "spatial:a=1, spatial:a=2" in message
+
+
 def test_the_table_gives_the_paired_difference_and_the_scenes_that_moved():
     before = {("opposite", 0): (1.0, 2.0), ("opposite", 1): (0.5, 2.0), ("many", 0): (0.9, 4.0)}
     after = {("opposite", 0): (1.0, 1.0), ("opposite", 1): (0.9, 1.0), ("many", 7): (0.1, 1.0)}
