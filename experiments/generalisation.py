@@ -30,7 +30,9 @@ higher: a better search would find it) and which the objective failed.
 
 Prints a Markdown table per family and model: accuracy mean, 10th percentile and worst row,
 the per-window-matched accuracy, mean IoU, velocity error, unassigned share and time. The
-JSON holds one row per scene, model and optimiser seed.
+JSON holds one row per scene, model and optimiser seed, with the start each window kept
+(``starts_kept``): a start that no window of a recording kept can be left out of
+``init.auto`` without changing that recording's result at the same optimiser seed.
 """
 
 from __future__ import annotations
@@ -247,6 +249,7 @@ def run_scene(
                 "n_motions": drawn.n_motions,
                 "n_clusters_found": metrics["n_clusters"],
                 "windows": len(seg.windows),
+                "starts_kept": [w.init_method for w in seg.windows],
                 "sensor": drawn.summary["sensor"],
                 "modifiers": asdict(drawn.modifiers),
                 **diagnostics,

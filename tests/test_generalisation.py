@@ -45,6 +45,7 @@ def test_a_scene_read_back_from_disk_is_scored_per_model(tmp_path):
         assert set(row) >= ROW_KEYS and row["modifiers"]["noise"] == 0.1
         assert 0 <= row["accuracy"] <= row["accuracy_per_window"] <= 1
         assert row["windows"] == 2 and row["n_motions"] == 2
+        assert row["starts_kept"] == ["image_flow", "image_flow"]  # FAST's one start
     assert rows[0]["velocity_error"] is not None and rows[1]["velocity_error"] is None
     assert len(list(tmp_path.iterdir())) == 1  # the cached recording, reused by a rerun
     again = generalisation.run_scene(
