@@ -113,7 +113,8 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The command line: two runs' JSON files, the model's kind and the step."""
+    """The command line: two runs' JSON files, the model's kind, the variant compared in
+    each (for a file of several) and the step."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("before", type=Path)
     parser.add_argument("after", type=Path)
