@@ -235,10 +235,11 @@ def run_stream(
     cfg: DictConfig, plain: dict[str, Any], settings: Settings, out_dir: Path, tracked: LiveRun
 ) -> dict[str, Any]:
     """``scene.stream=true``: read, segment and write the file window by window, holding one
-    window in memory; the outputs are those of any run except the figures and metrics. Each
+    window in memory (with ``window.parallel``, a few per worker: :func:`segment_stream`);
+    the outputs are those of any run except the figures and metrics. Each
     window's metrics go to MLflow as it ends; the end reports the real-time factor. ``plain``
     is the run config (the outputs record it), ``settings`` the method's."""
-    from spatialseg.pipeline import segment_loaded
+    from spatialseg.pipeline import segment_stream
     from spatialseg.results import (
         ArrayStream,
         ProbabilityStream,
@@ -264,20 +265,17 @@ def run_stream(
         SegmentationH5(h5_path) if cfg.output.h5 else contextlib.nullcontext() as h5,
         progress_bar(None, "window", enabled=bool(cfg.output.progress)) as bar,
     ):
-        optimizer, windows, handover = build_optimizer(cfg), [], None
+        windows, handover = [], None
         span = (np.inf, -np.inf)  # the first and last event times seen
-        stream = stream_scene(plain["scene"], window_events=settings.window.events)
-        for w, window in enumerate(stream):
-            seed = int(np.random.default_rng([int(cfg.seed), w]).integers(2**31 - 1))
-            _, seg = segment_loaded(
-                window,
-                settings,
-                optimizer,
-                seed=seed,
-                handover=handover,
-                progress=bool(cfg.output.progress),
-                first_window=len(windows),
-            )
+        chunks = stream_scene(plain["scene"], window_events=settings.window.events)
+        segmented = segment_stream(
+            chunks,
+            settings,
+            build_optimizer(cfg),
+            seed=int(cfg.seed),
+            progress=bool(cfg.output.progress),
+        )
+        for window, seg in segmented:
             handover = seg.handover or handover
             labels.append(seg.labels)
             probabilities.append_segmentation(seg)

@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
+from functools import partial
 from typing import Any, TypeVar
 
 from spatialseg.checks import integer_setting
@@ -26,8 +28,13 @@ __all__ = ["ENGINES", "check_parallel", "map_in_order"]
 #: The engines ``window.parallel`` names.
 ENGINES = ("none", "processes", "ray")
 
+#: Items submitted per worker ahead of the result being handed back: enough to keep every
+#: worker busy while the caller handles a result, few enough to bound the memory.
+AHEAD = 2
+
 T = TypeVar("T")
 R = TypeVar("R")
+F = TypeVar("F")
 
 
 def check_parallel(engine: Any, workers: Any) -> tuple[str, int | None]:
@@ -51,15 +58,31 @@ def _call_on_one_thread(fn: Callable[[T], R], item: T) -> R:
     return fn(item)
 
 
-def _processes(fn: Callable[[T], R], items: list[T], workers: int | None) -> Iterator[R]:
-    """``fn`` over ``items`` on a local pool of spawned processes, results in order."""
-    count = min(workers or os.cpu_count() or 1, max(len(items), 1))
+def _bounded(
+    submit: Callable[[T], F], result: Callable[[F], R], items: Iterable[T], ahead: int
+) -> Iterator[R]:
+    """Each item submitted as it is drawn, at most ``ahead`` waiting at a time, results in
+    the items' order. Why: a stream's windows are read while earlier ones run, and only
+    ``ahead`` of them are held in memory at once."""
+    pending: deque[F] = deque()
+    for item in items:
+        pending.append(submit(item))
+        if len(pending) >= ahead:
+            yield result(pending.popleft())
+    while pending:
+        yield result(pending.popleft())
+
+
+def _processes(fn: Callable[[T], R], items: Iterable[T], workers: int | None) -> Iterator[R]:
+    """``fn`` over ``items`` on a local pool of spawned processes (started as work arrives),
+    results in order."""
+    count = workers or os.cpu_count() or 1
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(count, mp_context=context, initializer=_one_thread) as pool:
-        yield from pool.map(fn, items)
+        yield from _bounded(partial(pool.submit, fn), Future.result, items, AHEAD * count)
 
 
-def _ray(fn: Callable[[T], R], items: list[T], workers: int | None) -> Iterator[R]:
+def _ray(fn: Callable[[T], R], items: Iterable[T], workers: int | None) -> Iterator[R]:
     """``fn`` over ``items`` as Ray tasks of one CPU each, results in order; starts a local
     Ray instance (``workers`` CPUs) unless one is running or ``RAY_ADDRESS`` names one."""
     try:
@@ -72,18 +95,19 @@ def _ray(fn: Callable[[T], R], items: list[T], workers: int | None) -> Iterator[
         ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
     task = ray.remote(num_cpus=1)(_call_on_one_thread)
     shared = ray.put(fn)
-    refs = [task.remote(shared, item) for item in items]
-    for ref in refs:
-        yield ray.get(ref)
+    cpus = workers or max(int(ray.cluster_resources().get("CPU", 1)), 1)
+    yield from _bounded(partial(task.remote, shared), ray.get, items, AHEAD * cpus)
 
 
 def map_in_order(
     fn: Callable[[T], R], items: Iterable[T], *, engine: str = "none", workers: int | None = None
 ) -> Iterator[R]:
     """``fn(item)`` for each item, in the items' order, on ``engine`` (:data:`ENGINES`;
-    ``fn`` and the items must pickle for any engine but ``none``)."""
+    ``fn`` and the items must pickle for any engine but ``none``). The items are drawn as
+    the work proceeds, at most :data:`AHEAD` per worker ahead of the result being handed
+    back, so an endless iterator (a stream) runs in bounded memory."""
     engine, workers = check_parallel(engine, workers)
     if engine == "none":
         return map(fn, items)
     run = _processes if engine == "processes" else _ray
-    return run(fn, list(items), workers)
+    return run(fn, items, workers)

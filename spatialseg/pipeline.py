@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -26,11 +26,15 @@ from spatialseg.settings import Settings, settings_from
 from spatialseg.window import WindowResult, segment_window
 
 __all__ = [
+    "ChunkTask",
     "Handover",
     "SegmentationResult",
     "WindowTask",
+    "chunk_seed",
+    "linked_windows",
     "segment_loaded",
     "segment_recording",
+    "segment_stream",
 ]
 
 log = logging.getLogger(__name__)
@@ -96,6 +100,35 @@ def segment_recording(
     Events outside every window (before the first or after the last depth map) are -1.
     """
     settings = settings_from(settings)
+    windows = _segmented_windows(
+        recording.spans(settings.window.context),
+        len(recording.depth_maps) - 1,
+        settings,
+        optimizer,
+        seed=seed,
+        previous=None if handover is None else handover.velocities,
+        on_iteration=on_iteration,
+        first_window=first_window,
+        progress=progress,
+    )
+    own = (
+        (index, replace(res, labels=res.labels[inner], probabilities=res.probabilities[inner]))
+        for index, inner, res in windows
+    )
+    return linked_windows(recording, own, handover, on_window)
+
+
+def linked_windows(
+    recording: Recording,
+    windows: Iterable[tuple[np.ndarray, WindowResult]],
+    handover: Handover | None,
+    on_window: Callable[[np.ndarray, WindowResult], None] | None = None,
+) -> SegmentationResult:
+    """A recording's segmented windows, in order (``(event_indices, result)``, the result's
+    labels and memberships those of the window's own events), with each window's clusters
+    linked to the objects of the window before (``handover``: a stream's previous chunk)
+    and ``on_window`` called as each is linked. Why apart: windows segmented on workers are
+    linked here afterwards, in order, as the serial run links them."""
     n = len(recording.events)
     labels = np.full(n, -1, dtype=np.int64)
     results, indices = [], []
@@ -103,22 +136,11 @@ def segment_recording(
     edge = None if handover is None else handover.boundary
     next_id = 0 if edge is None else edge.next_id
     xy = np.column_stack([recording.events.x, recording.events.y])
-    windows = _segmented_windows(
-        recording.spans(settings.window.context),
-        len(recording.depth_maps) - 1,
-        settings,
-        optimizer,
-        seed=seed,
-        previous=previous,
-        on_iteration=on_iteration,
-        first_window=first_window,
-        progress=progress,
-    )
-    for index, inner, res in windows:
+    for index, res in windows:
         previous = res.clustering.thetas
-        own = res.labels[inner]
+        own = res.labels
         ids, next_id = link_clusters(edge, xy[index], own, res.clustering.thetas.shape[0])
-        res = replace(res, labels=own, probabilities=res.probabilities[inner], ids=ids)
+        res = replace(res, ids=ids)
         labels[index] = np.where(own >= 0, ids[np.maximum(own, 0)], -1)
         edge = boundary(xy[index], labels[index], next_id)
         results.append(res)
@@ -267,6 +289,73 @@ def segment_loaded(
             on_window=on_window,
         )
     return recording, seg
+
+
+def chunk_seed(seed: int, chunk: int) -> int:
+    """The seed of a stream's chunk ``chunk``: drawn from (``seed``, ``chunk``), so each
+    chunk's segmentation is the same whichever worker runs it."""
+    return int(np.random.default_rng([int(seed), int(chunk)]).integers(2**31 - 1))
+
+
+@dataclass(frozen=True)
+class ChunkTask:
+    """One stream chunk's work for a worker: :func:`segment_loaded`'s arguments, without
+    the chunk before's handover (chunks on other workers are independent)."""
+
+    chunk: Recording
+    settings: Settings
+    optimizer: Any
+    seed: int
+
+
+def _segment_chunk(task: ChunkTask) -> tuple[Recording, SegmentationResult]:
+    """The task's chunk through its depth source and segmented, its objects numbered from
+    0 (a module-level function, so a process pool can pickle it)."""
+    return segment_loaded(task.chunk, task.settings, task.optimizer, seed=task.seed, progress=False)
+
+
+def segment_stream(
+    chunks: Iterable[Recording],
+    settings: Settings | Mapping[str, Any],
+    optimizer: Any,
+    *,
+    seed: int,
+    progress: bool = True,
+) -> Iterator[tuple[Recording, SegmentationResult]]:
+    """A stream's chunks (recordings without depth maps, in time order) segmented, in order,
+    each as (the chunk with the depth maps used, its segmentation, object ids continuing
+    the chunks before): one after the other, each chunk handed the one before's
+    :class:`Handover`; or with ``window.parallel`` on workers, at most a few chunks ahead
+    of the one being handed back (:func:`~spatialseg.executors.map_in_order`), each chunk's
+    objects linked here, in order, to the chunk before's. Chunk ``w`` runs with
+    :func:`chunk_seed` (``seed``, w) either way."""
+    settings = settings_from(settings)
+    handover, first = None, 0
+    if settings.window.parallel == "none":
+        for w, chunk in enumerate(chunks):
+            used, seg = segment_loaded(
+                chunk,
+                settings,
+                optimizer,
+                seed=chunk_seed(seed, w),
+                handover=handover,
+                progress=progress,
+                first_window=first,
+            )
+            handover, first = seg.handover or handover, first + len(seg.windows)
+            yield used, seg
+        return
+    here = replace(settings, window=replace(settings.window, parallel="none"))
+    tasks = (ChunkTask(c, here, optimizer, chunk_seed(seed, w)) for w, c in enumerate(chunks))
+    engine, workers = settings.window.parallel, settings.window.workers
+    for used, alone in map_in_order(_segment_chunk, tasks, engine=engine, workers=workers):
+        seg = linked_windows(used, zip(alone.indices, alone.windows, strict=True), handover)
+        if progress:
+            for w, (index, res) in enumerate(zip(seg.indices, seg.windows, strict=True)):
+                seconds = sum(res.timings.values())
+                _log_window(_window_name(first + w, None), len(index), len(index), res, seconds)
+        handover, first = seg.handover or handover, first + len(seg.windows)
+        yield used, seg
 
 
 def _window_name(index: int, count: int | None) -> str:
