@@ -1,8 +1,9 @@
 """Independent jobs mapped in order, here, over local processes or on Ray.
 
-The recording's windows are independent work once identities are linked after the fact
-(:func:`spatialseg.identities.link_clusters`), so :func:`map_in_order` runs them on the
-engine ``window.parallel`` names and hands the results back in the windows' order:
+The recording's windows (or a stream's, as the file is read) are independent work once
+identities are linked after the fact (:func:`spatialseg.identities.link_clusters`), so
+:func:`map_in_order` runs them on the engine ``window.parallel`` names and hands the
+results back in the windows' order:
 
 - ``none``: one after the other in this process;
 - ``processes``: a local pool of ``spawn`` processes (a fork would copy numba's thread
