@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
@@ -203,3 +205,39 @@ def test_one_window_preset_clusters_each_window_alone_from_the_flow_start():
     assert base.init.method == "auto" and base.window.context == 1 and base.window.count == 3
     assert cfg.init.method == "image_flow" and cfg.clustering.step_edges is False
     assert cfg.window.context == 0 and cfg.window.count == 1
+
+
+class _Stub:
+    """An optimiser that spends ``cost`` evaluations and moves ``theta`` by ``shift`` per call."""
+
+    def __init__(self, cost: int, shift: float) -> None:
+        self.cost, self.shift = cost, shift
+
+    def maximize(self, fun, bounds, x0=None, grad=None, max_evals=2000, seed=0, **kwargs):
+        return SimpleNamespace(x=np.asarray(x0) + self.shift, n_evals=self.cost)
+
+
+@pytest.mark.parametrize("shift, searched", [(0.0, 2), (1e-4, 6)])
+def test_the_theta_steps_stop_once_patience_of_them_moved_no_velocity(shift, searched):
+    """A theta-step that keeps every velocity twice (patience 2) ends the search: the loop
+    then runs P-steps only; one that moves a velocity each time runs every iteration."""
+    rng = np.random.default_rng(0)
+    points, dt, labels, truth = _two_motion_cloud(rng)
+    grid = grid_around(points, np.array([0.005, 0.005, 0.02]), 0.1, 10**7)
+    evaluator = ModelEvaluator(VolumeObjective(points, dt, grid, "variance"), 3)
+    p0 = initial_memberships(points, grid.voxel_size, labels, 2, mode="flow", confidence=0.6)
+    result = iterative_clustering(
+        evaluator,
+        _Stub(cost=7, shift=shift),
+        truth,
+        p0,
+        np.array([[-1.0, 1.0], [-1.0, 1.0], [-0.1, 0.1]]),
+        rules=ConvergenceRules(max_iterations=6, tol=0.0, patience=2),
+        evals_per_step=7,
+        p_step_sigma=2.0,
+        seed=0,
+    )
+    assert [r.n_evals for r in result.history] == [14] * searched + [0] * (6 - searched)
+    changed = [r.labels_changed for r in result.history]
+    assert changed[0] > 0  # the P-steps go on: the flow start's soft memberships harden
+    assert np.mean(result.probabilities.argmax(axis=1) == labels) > 0.95
