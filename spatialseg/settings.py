@@ -265,7 +265,8 @@ class ClusteringSettings:
     max_iterations: int = 20
     #: Rule 1: relative change of total contrast ...
     tol: float = 0.001
-    #: ... below tol for this many iterations.
+    #: ... below tol for this many iterations; and after this many theta-steps in a row
+    #: that moved no velocity the loop runs P-steps only (docs/method.md).
     patience: int = 2
     #: Rule 2: stop when the total contrast exceeds this value.
     target: float | None = None
