@@ -128,9 +128,6 @@ class ClusteringResult:
     history: list[IterationRecord] = field(default_factory=list)
     converged: bool = False
     reason: str = ""
-    #: How well the motions explain the events at the last P-step
-    #: (:func:`explained_log_likelihood`); what a window's starts are judged by.
-    log_likelihood: float = float("nan")
 
     @property
     def iterations(self) -> int:
@@ -283,27 +280,6 @@ def p_step(
     return update_memberships(responses)
 
 
-#: An event no cluster's volume reaches counts this response (its log: -27.6), far below any
-#: event a volume holds, so that leaving the volumes is the worst an event can do.
-RESPONSE_FLOOR = 1e-12
-
-
-def explained_log_likelihood(responses: np.ndarray) -> float:
-    """``sum_i log max_j c_j(x'_ij)`` over the events (rows of ``responses``, N x K): each
-    event's density in the volume of the cluster that explains it best.
-
-    Decision: the total contrast grows as the memberships harden, so it ranks a window's
-    starts partly by how far each one's hardening has got; an event's response in its own
-    cluster's volume is what the P-step labels it by, and summed in logs it is the
-    likelihood of the partition's events under their clusters, which a merged pair of
-    motions or an object folded into another's volume lowers for every event they blur
-    (docs/results.md, session 49)."""
-    if not responses.size:
-        return 0.0
-    best = np.maximum(responses.max(axis=1), RESPONSE_FLOOR)
-    return float(np.sum(np.log(best)))
-
-
 def p_step_from_every_event(
     evaluator: ClusterEvaluator,
     thetas: np.ndarray,
@@ -444,8 +420,7 @@ def iterative_clustering(
     converged = bool(reason)
     if not converged:
         reason = f"iteration limit {rules.max_iterations} reached"
-    fit = explained_log_likelihood(responses)
-    return ClusteringResult(thetas, p, values.copy(), history, converged, reason, fit)
+    return ClusteringResult(thetas, p, values.copy(), history, converged, reason)
 
 
 #: A cluster that is the likeliest for under this share of the events is empty (mean

@@ -107,7 +107,6 @@ def window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) ->
         "stop_reason": c.reason,
         "init_fallback": res.init_fallback,
         "init_method": res.init_method,
-        "log_likelihood": c.log_likelihood,
         "timings": {k: round(v, 6) for k, v in res.timings.items()},
         "history": {
             "total": [r.total for r in c.history],

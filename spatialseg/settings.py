@@ -202,8 +202,7 @@ class InitSettings:
     """Initial motions and memberships (spatialseg.motion_init)."""
 
     #: tiles, image_flow, time_surface (the paper's 3 planes), or auto: cluster from each
-    #: start of ``auto`` and keep the one whose motions explain the events best
-    #: (spatialseg.clustering.explained_log_likelihood).
+    #: start of ``auto`` and keep the highest total contrast.
     method: str = "auto"
     #: method=auto: the starts tried (each runs the whole clustering); previous: the
     #: preceding window's final velocities (not in a recording's first window).

@@ -127,8 +127,7 @@ def segment_window(
 ) -> WindowResult:
     """Segment one window (two depth maps) into ``n_clusters`` motions (``auto``: as many
     as :func:`~spatialseg.clustering.count_motions` finds); with ``init.method=auto``, from
-    each start of ``init.auto``, keeping the one whose motions explain the events best
-    (:attr:`~spatialseg.clustering.ClusteringResult.log_likelihood`). ``previous`` (K x the
+    each start of ``init.auto``, keeping the highest total contrast. ``previous`` (K x the
     model's components): the preceding window's final velocities, the ``previous`` start
     (skipped when None, or with another K). ``progress``: the window's name
     in a DEBUG line per iteration and per start (None: no such lines). ``inner``: the
@@ -182,7 +181,7 @@ def segment_window(
 
     def best_start(k: int) -> tuple[ClusteringResult, motion_init.InitResult, str]:
         """The loop from each start with ``k`` motions (``previous`` only where the window
-        before found ``k``), the highest log-likelihood kept."""
+        before found ``k``), the highest total contrast kept."""
         best: tuple[ClusteringResult, motion_init.InitResult, str] | None = None
         for method in starts:
             if method == PREVIOUS and (previous is None or len(previous) != k):
@@ -208,14 +207,8 @@ def segment_window(
             result = cluster(init, method, bounds)
             timings["cluster"] += time.perf_counter() - start
             if progress is not None and len(starts) > 1:
-                log.debug(
-                    "%s, start %s: log-likelihood %.6g, total contrast %.6g",
-                    progress,
-                    method,
-                    result.log_likelihood,
-                    result.total,
-                )
-            if best is None or result.log_likelihood > best[0].log_likelihood:
+                log.debug("%s, start %s: total contrast %.6g", progress, method, result.total)
+            if best is None or result.total > best[0].total:
                 best = (result, init, method)
         assert best is not None  # init_candidates names a start
         return best

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -16,7 +15,6 @@ from spatialseg.clustering import (
     IterationRecord,
     _stop_reason,
     cluster_responses,
-    explained_log_likelihood,
     initial_memberships,
     iterative_clustering,
     p_step,
@@ -219,10 +217,10 @@ class _Stub:
         return SimpleNamespace(x=np.asarray(x0) + self.shift, n_evals=self.cost)
 
 
-def _stub_loop(shift: float, start=None):
-    """The two-motion cloud clustered for six iterations (patience 2) by :class:`_Stub`
-    (seven evaluations a step, moving each velocity by ``shift``) from ``start`` (default:
-    the true velocities) and soft flow memberships; the result and the true labels."""
+@pytest.mark.parametrize("shift, searched", [(0.0, 2), (1e-4, 6)])
+def test_the_theta_steps_stop_once_patience_of_them_moved_no_velocity(shift, searched):
+    """A theta-step that keeps every velocity twice (patience 2) ends the search: the loop
+    then runs P-steps only; one that moves a velocity each time runs every iteration."""
     rng = np.random.default_rng(0)
     points, dt, labels, truth = _two_motion_cloud(rng)
     grid = grid_around(points, np.array([0.005, 0.005, 0.02]), 0.1, 10**7)
@@ -231,7 +229,7 @@ def _stub_loop(shift: float, start=None):
     result = iterative_clustering(
         evaluator,
         _Stub(cost=7, shift=shift),
-        truth if start is None else start(truth),
+        truth,
         p0,
         np.array([[-1.0, 1.0], [-1.0, 1.0], [-0.1, 0.1]]),
         rules=ConvergenceRules(max_iterations=6, tol=0.0, patience=2),
@@ -239,56 +237,7 @@ def _stub_loop(shift: float, start=None):
         p_step_sigma=2.0,
         seed=0,
     )
-    return result, labels
-
-
-@pytest.mark.parametrize("shift, searched", [(0.0, 2), (1e-4, 6)])
-def test_the_theta_steps_stop_once_patience_of_them_moved_no_velocity(shift, searched):
-    """A theta-step that keeps every velocity twice (patience 2) ends the search: the loop
-    then runs P-steps only; one that moves a velocity each time runs every iteration."""
-    result, labels = _stub_loop(shift)
     assert [r.n_evals for r in result.history] == [14] * searched + [0] * (6 - searched)
     changed = [r.labels_changed for r in result.history]
     assert changed[0] > 0  # the P-steps go on: the flow start's soft memberships harden
     assert np.mean(result.probabilities.argmax(axis=1) == labels) > 0.95
-
-
-def test_the_explained_log_likelihood_sums_each_events_best_response_in_logs():
-    """``sum_i log max_j c_ij``, an event no volume reaches counted at the floor."""
-    responses = np.array([[2.0, 0.5], [0.1, 4.0], [0.0, 0.0]])
-    expected = np.log(2.0) + np.log(4.0) + np.log(1e-12)
-    assert explained_log_likelihood(responses) == pytest.approx(expected)
-    assert explained_log_likelihood(np.zeros((0, 2))) == 0.0
-
-
-def test_two_motions_explain_their_events_better_than_one_motion_twice():
-    """The loop's log-likelihood: from the true velocities above, from both clusters on the
-    first object's motion below (the merged pair of issue #25), velocities held fixed."""
-    right = _stub_loop(0.0)[0].log_likelihood
-    merged = _stub_loop(0.0, lambda truth: np.array([truth[0], truth[0]]))[0].log_likelihood
-    assert np.isfinite(right) and right > merged
-
-
-def test_a_window_keeps_the_start_whose_motions_explain_its_events_best(monkeypatch):
-    """Of the window's starts, the one with the highest log-likelihood is kept, not the one
-    with the highest total contrast: here the flow start's loop is given the higher total
-    and the tile start's the higher likelihood."""
-    import spatialseg.window as window_module
-
-    real = window_module._cluster_from
-    calls: list[str] = []
-
-    def judged(*args, **kwargs):
-        result = real(*args, **kwargs)
-        first = not calls
-        calls.append("flow" if first else "tiles")
-        values = result.values * (10.0 if first else 1.0)
-        return replace(result, values=values, log_likelihood=-1e9 if first else 1e9)
-
-    monkeypatch.setattr(window_module, "_cluster_from", judged)
-    with initialize_config_dir(str(conf_dir()), version_base="1.3"):
-        cfg = OmegaConf.to_container(compose("config", overrides=["+scene=interior"]))
-    _, window = next(load_scene(cfg["scene"], seed=0, window_events=3000).windows())
-    res = segment_window(window, settings_from(cfg), optimizers.create("ssa_ga"), seed=0)
-    assert calls[:2] == ["flow", "tiles"]
-    assert res.init_method == "tiles"

@@ -352,9 +352,9 @@ def _with_init(cfg: dict, **init) -> Settings:
     return settings_from({**cfg, "init": {**cfg["init"], **init}})
 
 
-def test_auto_init_keeps_the_start_whose_motions_explain_the_events_best(interior):
-    """init.method=auto clusters from each start of init.auto and keeps the result with the
-    highest log-likelihood (``ClusteringResult.log_likelihood``)."""
+def test_auto_init_keeps_the_start_with_the_highest_total_contrast(interior):
+    """init.method=auto clusters from each start of init.auto and keeps the result whose
+    final total contrast (the objective) is highest."""
     cfg, rec = interior
     _, window = next(rec.windows())
     alone = {
@@ -366,17 +366,17 @@ def test_auto_init_keeps_the_start_whose_motions_explain_the_events_best(interio
     auto = segment_window(
         window, _with_init(cfg, method="auto"), optimizers.create("ssa_ga"), seed=0
     )
-    best = max(alone, key=lambda m: alone[m].clustering.log_likelihood)
+    best = max(alone, key=lambda m: alone[m].clustering.values.sum())
     assert auto.init_method == best and alone["tiles"].init_method == "tiles"
     assert np.array_equal(auto.labels, alone[best].labels)
     assert np.array_equal(auto.clustering.thetas, alone[best].clustering.thetas)
 
 
-def test_previous_start_is_skipped_without_a_previous_window_and_can_only_raise_the_fit(
+def test_previous_start_is_skipped_without_a_previous_window_and_can_only_raise_the_total(
     interior,
 ):
     """``previous`` in init.auto adds a start only when segment_window is handed velocities;
-    the result kept then has at least the log-likelihood of the other starts'."""
+    the result kept then has at least the total contrast of the other starts'."""
     cfg, rec = interior
     _, window = next(rec.windows())
     flow = _with_init(cfg, method="auto", auto=["image_flow"])
@@ -386,7 +386,7 @@ def test_previous_start_is_skipped_without_a_previous_window_and_can_only_raise_
     skipped = segment_window(window, both, optimizers.create("ssa_ga"), seed=0)
     given = segment_window(window, both, optimizers.create("ssa_ga"), seed=0, previous=truth)
     assert np.array_equal(skipped.labels, alone.labels) and skipped.init_method == "image_flow"
-    assert given.clustering.log_likelihood >= alone.clustering.log_likelihood
+    assert given.clustering.values.sum() >= alone.clustering.values.sum()
 
 
 def test_previous_init_labels_events_by_one_p_step_at_the_given_velocities(interior):
