@@ -250,8 +250,9 @@ def _gather_grad(points, dt, weights, theta, origin, inv_size, proj, padded, cel
         w = np.float64(weights[k])
         b = cells[k]
         wdt = w * dt[k]
+        kx = ky = kz = 1.0
         if b >= 0:  # interior cell: all corners in the grid, mass constant
-            value, dx, dy, dz = _interpolate(flat, b, sx, sy, fracs[k, 0], fracs[k, 1], fracs[k, 2])
+            fx, fy, fz = fracs[k, 0], fracs[k, 1], fracs[k, 2]
         else:
             if w == 0.0:
                 continue
@@ -261,8 +262,6 @@ def _gather_grad(points, dt, weights, theta, origin, inv_size, proj, padded, cel
             if not inside:
                 continue
             (fx, mx0, mx1, kx), (fy, my0, my1, ky), (fz, mz0, mz1, kz) = ax, ay, az
-            value, dx, dy, dz = _interpolate(flat, b, sx, sy, fx, fy, fz)
-            dx, dy, dz = kx * dx, ky * dy, kz * dz
             ex = (1.0 - fx) * mx0 + fx * mx1
             ey = (1.0 - fy) * my0 + fy * my1
             ez = (1.0 - fz) * mz0 + fz * mz1
@@ -280,8 +279,10 @@ def _gather_grad(points, dt, weights, theta, origin, inv_size, proj, padded, cel
             bx_ += wdt * mass[0]
             by_ += wdt * mass[1]
             bz_ += wdt * mass[2]
+        # one interpolation for both kinds of event, so S rounds as in _weighted_sample_sum
+        value, dx, dy, dz = _interpolate(flat, b, sx, sy, fx, fy, fz)
         s += w * value
-        jx, jy, jz = _to_theta(points, dt, k, theta, proj, inv_size, dx, dy, dz)
+        jx, jy, jz = _to_theta(points, dt, k, theta, proj, inv_size, kx * dx, ky * dy, kz * dz)
         ax_ += wdt * jx
         ay_ += wdt * jy
         az_ += wdt * jz
@@ -310,7 +311,8 @@ def _batch_moments(points, dt, weights, thetas, origin, inv_size, proj, padded, 
     chunks = padded.shape[0]
     for c in prange(chunks):
         for i in range(c, n, chunks):
-            args = (points, dt, weights, thetas[i], origin, inv_size, proj, padded[c])
+            theta = (thetas[i, 0], thetas[i, 1], thetas[i, 2])
+            args = (points, dt, weights, theta, origin, inv_size, proj, padded[c])
             out[i, 0] = _scatter(*args, cells[c], fracs[c])
             out[i, 1] = _weighted_sample_sum(*args, cells[c], fracs[c])
             _clear(*args, cells[c])
@@ -327,10 +329,18 @@ def _group_moments(
         for g in range(c, starts.size - 1, chunks):
             a, b = starts[g], starts[g + 1]
             for i in range(thetas.shape[0]):
-                args = (points[a:b], dt[a:b], weights[a:b], thetas[i], origin, inv_size, proj)
+                theta = (thetas[i, 0], thetas[i, 1], thetas[i, 2])
+                args = (points[a:b], dt[a:b], weights[a:b], theta, origin, inv_size, proj)
                 out[g, i, 0] = _scatter(*args, padded[c], cells[c], fracs[c])
                 out[g, i, 1] = _weighted_sample_sum(*args, padded[c], cells[c], fracs[c])
                 _clear(*args, padded[c], cells[c])
+
+
+def _floats(values: np.ndarray) -> tuple[float, ...]:
+    """``values`` as a tuple of floats, the form the kernels take a velocity and the grid's
+    constants in: an array passed on into their inlined helpers is reference-counted once per
+    event, which doubled the cost of a vote (docs/volume.md)."""
+    return tuple(float(v) for v in values)
 
 
 def _finite_array(
@@ -420,9 +430,9 @@ class VolumeObjective:
         self._points = np.ascontiguousarray(pts[self._order], dtype=self.dtype)
         self._dt = np.ascontiguousarray(times[self._order], dtype=self.dtype)
         self._weights = np.ones(len(self._dt), dtype=self.dtype)
-        self._origin = grid.origin.copy()
-        self._inv_size = 1.0 / grid.voxel_size
-        self._proj = None if grid.projection is None else grid.projection.copy()
+        self._origin = _floats(grid.origin)
+        self._inv_size = _floats(1.0 / grid.voxel_size)
+        self._proj = None if grid.projection is None else _floats(grid.projection)
         self._padded, self._cells, self._fracs = self._workspace()
         self._fused = isinstance(objective, MomentObjective) and not objective.smooths
         self._scratch: tuple[np.ndarray, np.ndarray] | None = None
@@ -491,7 +501,7 @@ class VolumeObjective:
             self._points,
             self._dt,
             self._weights,
-            theta,
+            _floats(theta),
             self._origin,
             self._inv_size,
             self._proj,
@@ -666,7 +676,7 @@ class VolumeObjective:
             value = self._voted_value(args, mass)
             if stride == 1:  # the vote is the P-step's; its cell cache stays valid
                 raw[...] = self._interior(self._padded)
-        events, grid_args = args[:4], (self._origin, 1.0 / coarse.voxel_size, self._proj)
+        events, grid_args = args[:4], (self._origin, _floats(1.0 / coarse.voxel_size), self._proj)
         if stride > 1:
             _scatter(*events, *grid_args, padded, self._cells, self._fracs)
             try:
