@@ -126,11 +126,12 @@ def _locate(points, dt, k, theta, origin, inv_size, proj, shape, sx, sy):
 
 @njit(cache=True, inline="always", fastmath=_FASTMATH)
 def _splat(flat, b, sx, sy, w, ax, ay, az) -> float:
-    """Add the 8 masked trilinear votes of weight ``w`` at cell ``b``; return the mass added."""
+    """Add the 8 masked trilinear votes of weight ``w`` at cell ``b`` (per axis: the fraction
+    and the masks of the lower and upper corner); return the mass added."""
     cast = flat.dtype.type  # add in the volume's dtype (no float32 -> float64 round trip)
-    fx, mx0, mx1, _ = ax
-    fy, my0, my1, _ = ay
-    fz, mz0, mz1, _ = az
+    fx, mx0, mx1 = ax
+    fy, my0, my1 = ay
+    fz, mz0, mz1 = az
     wx0, wx1 = w * (1.0 - fx) * mx0, w * fx * mx1
     wy0, wy1 = (1.0 - fy) * my0, fy * my1
     wz0, wz1 = (1.0 - fz) * mz0, fz * mz1
@@ -169,22 +170,29 @@ def _scatter(points, dt, weights, theta, origin, inv_size, proj, padded, cells, 
     Caches each voting event's cell and fractions in ``cells``/``fracs`` for the passes that
     follow at the same theta; ``cells[k] = -1`` marks an event to skip (weight 0) or, when its
     cell touches the border, to re-locate.
+
+    Decision: two loops, locating every event first and then voting, because the first,
+    without the votes' scattered writes, vectorises: a third less time than one loop.
     """
     flat, shape, sx, sy = _layout(padded)
+    for k in range(dt.size):
+        inside, b, ax, ay, az = _locate(points, dt, k, theta, origin, inv_size, proj, shape, sx, sy)
+        whole = ax[1] * ax[2] * ay[1] * ay[2] * az[1] * az[2] == 1.0  # all 8 corners inside
+        cells[k] = b if inside and whole and weights[k] != 0 else -1
+        fracs[k, 0], fracs[k, 1], fracs[k, 2] = ax[0], ay[0], az[0]
     mass = 0.0
     for k in range(dt.size):
         w = np.float64(weights[k])
-        cached = -1
-        if w != 0.0:
+        b = cells[k]
+        if b >= 0:
+            fx, fy, fz = fracs[k, 0], fracs[k, 1], fracs[k, 2]
+            mass += _splat(flat, b, sx, sy, w, (fx, 1.0, 1.0), (fy, 1.0, 1.0), (fz, 1.0, 1.0))
+        elif w != 0.0:
             inside, b, ax, ay, az = _locate(
                 points, dt, k, theta, origin, inv_size, proj, shape, sx, sy
             )
             if inside:
-                mass += _splat(flat, b, sx, sy, w, ax, ay, az)
-                if ax[1] * ax[2] * ay[1] * ay[2] * az[1] * az[2] == 1.0:
-                    cached = b
-                    fracs[k, 0], fracs[k, 1], fracs[k, 2] = ax[0], ay[0], az[0]
-        cells[k] = cached
+                mass += _splat(flat, b, sx, sy, w, ax[:3], ay[:3], az[:3])
     return mass
 
 
