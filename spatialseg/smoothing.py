@@ -9,6 +9,9 @@ clustering time.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import lru_cache
+
 import numpy as np
 from numba import njit, prange
 
@@ -101,18 +104,41 @@ def _banded(kernel: np.ndarray, sources: np.ndarray) -> np.ndarray:
     return banded[:n]
 
 
-def _convolve_axis(
-    src: np.ndarray, dst: np.ndarray, kernel: np.ndarray, axis: int, mode: str
-) -> None:
-    """One 1-D pass of ``kernel`` along ``axis`` of the C-contiguous 3-D ``src`` into ``dst``."""
+@dataclass(frozen=True)
+class _Pass:
+    """One 1-D pass of a smoothing, made ready for its kernel: along ``axis``, either the
+    banded matrix of a short last axis (``banded``) or the taps and their sources."""
+
+    axis: int
+    kernel: np.ndarray
+    sources: np.ndarray
+    banded: np.ndarray | None
+
+
+@lru_cache(maxsize=64)
+def _passes(shape: tuple[int, int, int], sigmas: tuple[float, ...], mode: str, dtype: str):
+    """The passes of a smoothing of ``sigmas`` over a volume of ``shape`` and ``dtype``, made
+    once: the P-step smooths every cluster's volume of a window alike, every iteration."""
+    passes = []
+    for axis, sigma in enumerate(sigmas):
+        if sigma == 0:
+            continue
+        kernel = gaussian_kernel(sigma)
+        sources = _sources(shape[axis], kernel.shape[0], mode)
+        short = axis == 2 and shape[2] <= _ROWS_MAX  # a small matrix product per row
+        banded = _banded(kernel, sources).astype(dtype) if short else None
+        passes.append(_Pass(axis, kernel.astype(dtype), sources, banded))
+    return tuple(passes)
+
+
+def _convolve_axis(src: np.ndarray, dst: np.ndarray, step: _Pass) -> None:
+    """One 1-D pass along ``step.axis`` of the C-contiguous 3-D ``src`` into ``dst``."""
     n0, n1, n2 = src.shape
-    sources = _sources(src.shape[axis], kernel.shape[0], mode)
-    if axis == 2 and n2 <= _ROWS_MAX:  # short rows: a small matrix product per row
-        banded = _banded(kernel, sources).astype(src.dtype)
-        _convolve_rows(src.reshape(-1, n2), dst.reshape(-1, n2), banded)
+    if step.banded is not None:
+        _convolve_rows(src.reshape(-1, n2), dst.reshape(-1, n2), step.banded)
         return
-    shape = {0: (1, n0, n1 * n2), 1: (n0, n1, n2), 2: (n0 * n1, n2, 1)}[axis]
-    _convolve_middle(src.reshape(shape), dst.reshape(shape), kernel.astype(src.dtype), sources)
+    shape = {0: (1, n0, n1 * n2), 1: (n0, n1, n2), 2: (n0 * n1, n2, 1)}[step.axis]
+    _convolve_middle(src.reshape(shape), dst.reshape(shape), step.kernel, step.sources)
 
 
 def gaussian_smooth(
@@ -150,14 +176,12 @@ def gaussian_smooth(
     result = out if out.flags.c_contiguous else np.empty_like(volume, order="C")
     src = volume if volume.flags.c_contiguous else np.ascontiguousarray(volume)
     spare = work if work is not None else (src if src is not volume else None)
-    for axis, s in enumerate(sigmas):
-        if s == 0:
-            continue
+    for step in _passes(volume.shape, tuple(map(float, sigmas)), mode, volume.dtype.str):
         if src is not result:
             dst = result
         else:
             dst = spare = np.empty_like(result) if spare is None else spare
-        _convolve_axis(src, dst, gaussian_kernel(float(s)), axis, mode)
+        _convolve_axis(src, dst, step)
         src = dst
     if src is not out:
         out[...] = src
