@@ -27,6 +27,7 @@ log = logging.getLogger(__name__)
 #: The modules whose ``cache=True`` kernels a segmentation calls.
 KERNEL_MODULES = (
     "spatialseg.volume",
+    "spatialseg.clustering",
     "spatialseg.objectives",
     "spatialseg.smoothing",
     "spatialseg.denoise",
