@@ -344,6 +344,31 @@ def _group_moments(
                 _clear(*args, padded[c], cells[c])
 
 
+def _stable_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
+    """``np.argsort(keys, kind="stable")`` of integer ``keys`` in ``[0, n_keys)``: by counting
+    (time ``N + n_keys``) where the keys' range is at most a few times their count, else
+    numpy's comparison sort (250,000 events on a 106,000-voxel grid: 1.5 ms against 21).
+    The same order either way."""
+    if n_keys > 32 * len(keys):
+        return np.argsort(keys, kind="stable")
+    return _counting_order(keys.astype(np.int64, copy=False), n_keys)
+
+
+@njit(cache=True)
+def _counting_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
+    """The stable order of ``keys`` (in ``[0, n_keys)``) by one counting sort."""
+    starts = np.zeros(n_keys + 1, dtype=np.int64)
+    for key in keys:
+        starts[key + 1] += 1
+    for key in range(n_keys):
+        starts[key + 1] += starts[key]
+    order = np.empty(keys.size, dtype=np.intp)
+    for i in range(keys.size):
+        order[starts[keys[i]]] = i
+        starts[keys[i]] += 1
+    return order
+
+
 def _floats(values: np.ndarray) -> tuple[float, ...]:
     """``values`` as a tuple of floats, the form the kernels take a velocity and the grid's
     constants in: an array passed on into their inlined helpers is reference-counted once per
@@ -471,7 +496,7 @@ class VolumeObjective:
         nearest = np.clip(np.rint(index), 0, shape - 1).astype(np.intp)
         voxel = np.ravel_multi_index(nearest.T, grid.shape)
         if groups is None:
-            return np.argsort(voxel, kind="stable")
+            return _stable_order(voxel, grid.n_voxels)
         return np.lexsort((voxel, groups))
 
     def _zero_padded(self, *count: int) -> np.ndarray:

@@ -36,6 +36,22 @@ def test_update_memberships_normalises_and_guards_zero_rows():
     assert np.allclose(p, [[0.25, 0.75], [0.5, 0.5], [0.0, 1.0]])
 
 
+@pytest.mark.parametrize("k", [1, 2, 3, 5, 7])
+def test_update_memberships_is_eq_26_to_the_last_bit(k):
+    """The kernel gives numpy's normalisation exactly (negative responses as 0, all-zero
+    rows uniform) over responses of every magnitude, for up to 7 clusters."""
+    rng = np.random.default_rng(k)
+    responses = rng.random((3000, k)) * 10.0 ** rng.uniform(-300, 300, (3000, k))
+    responses[rng.random((3000, k)) < 0.1] = 0.0
+    responses[rng.random((3000, k)) < 0.05] *= -1.0
+    responses[:5] = 0.0
+    clipped = np.maximum(responses, 0.0)
+    total = clipped.sum(axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        expected = np.where(total > 0, clipped / np.where(total > 0, total, 1.0), 1.0 / k)
+    np.testing.assert_array_equal(update_memberships(responses), expected)
+
+
 def test_initial_memberships_flow_and_uniform():
     points = np.array([[0.0, 0, 0], [0.1, 0, 0], [5.0, 0, 0], [5.1, 0, 0]])
     labels = np.array([0, -1, 1, -1])

@@ -12,7 +12,7 @@ from scipy.ndimage import gaussian_filter
 from spatialseg import reference as ref
 from spatialseg.grid import VoxelGrid
 from spatialseg.objectives import Objective, make_objective, objective_names
-from spatialseg.volume import VolumeObjective
+from spatialseg.volume import VolumeObjective, _stable_order
 
 GRID = VoxelGrid(np.array([0.0, -0.5, 1.0]), np.array([0.1, 0.1, 0.25]), (14, 11, 6))
 #: A grid over pixels and inverse depth (1.5-2.5 m) of a 300 px focal length camera.
@@ -348,3 +348,12 @@ def test_p_step_stride_needs_enough_smoothing():
     ev.p_step(THETA, (2.0, 2.0, 0.0), 3)  # depth is not coarsened, so any sigma there
     with pytest.raises(ValueError, match="grid stride must be an integer >= 1"):
         ev.p_step(THETA, 1.0, 0)
+
+
+@pytest.mark.parametrize(("n", "n_keys"), [(2000, 500), (2000, 60000), (300, 1_000_000), (0, 10)])
+def test_stable_order_is_numpys_stable_argsort(n, n_keys):
+    """By counting (keys' range up to 32 times their count) or by numpy's sort beyond: the
+    same permutation, ties kept in their given order."""
+    keys = np.random.default_rng(n).integers(0, n_keys, n)
+    keys[: n // 2] = keys[0] if n else 0  # many ties
+    np.testing.assert_array_equal(_stable_order(keys, n_keys), np.argsort(keys, kind="stable"))
