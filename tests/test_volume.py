@@ -322,7 +322,10 @@ def test_p_step_stride_is_the_coarse_references(grid, depth_sigma):
         if stride == 2:
             _close(responses, ref.sample(points, dt, THETA, coarse, volume) / 4.0, 1e-9)
         _close(value, ref.value(points, dt, THETA, grid, w), 1e-9)
-        assert not ev._padded.any() and not ev._pstep[2].any()
+        assert not ev._padded.any() and not ev._pstep[2].any()  # the vote buffers: zero
+        halo = ev._pstep[3].copy()  # the sampled buffer: its inside kept, its halo zero
+        halo[1:-1, 1:-1, 1:-1] = 0
+        assert ev._pstep[3].any() and not halo.any()
 
 
 def test_p_step_stride_keeps_the_fine_responses():
