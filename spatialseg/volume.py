@@ -172,7 +172,7 @@ def _scatter(points, dt, weights, theta, origin, inv_size, proj, padded, cells, 
     cell touches the border, to re-locate.
 
     Decision: two loops, locating every event first and then voting, because the first,
-    without the votes' scattered writes, vectorises: a third less time than one loop.
+    without the votes' scattered writes, vectorises: a quarter less time than one loop.
     """
     flat, shape, sx, sy = _layout(padded)
     for k in range(dt.size):
@@ -346,7 +346,7 @@ def _group_moments(
 
 def _stable_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
     """``np.argsort(keys, kind="stable")`` of integer ``keys`` in ``[0, n_keys)``: by counting
-    (time ``N + n_keys``) where the keys' range is at most a few times their count, else
+    (time ``N + n_keys``) where the keys' range is at most 32 times their count, else
     numpy's comparison sort (250,000 events on a 106,000-voxel grid: 1.5 ms against 21).
     The same order either way."""
     if n_keys > 32 * len(keys):
@@ -670,7 +670,9 @@ class VolumeObjective:
         with self._voted(theta):
             return self._interior(self._padded).copy()
 
-    def _p_step_buffers(self, stride: int) -> tuple[VoxelGrid, np.ndarray, np.ndarray, np.ndarray]:
+    def _p_step_buffers(
+        self, stride: int
+    ) -> tuple[VoxelGrid, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The P-step's grid (:meth:`VoxelGrid.coarsened` by ``stride``), two padded buffers
         with a zero halo (the coarse votes, zero between calls; the smoothed volume that is
         sampled, its inside overwritten each call), and its raw and smoothed volumes; made
