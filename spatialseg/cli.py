@@ -19,6 +19,7 @@ tracking, the command that opens the store.
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 import os
 import signal
@@ -367,15 +368,22 @@ def guarded(task: Callable[[DictConfig], object]) -> Callable[[DictConfig], None
 
 
 def launch(task: Callable[[DictConfig], object], config_name: str) -> None:
-    """Start a Hydra app on ``conf/<config_name>.yaml`` running ``task`` guarded."""
+    """Start a Hydra app on ``conf/<config_name>.yaml`` running ``task`` guarded.
+
+    The process ends after it: everything it made is frozen out of the garbage collector
+    (:func:`gc.freeze`), so the interpreter's exit does not trace numba's and the other
+    libraries' objects once more (0.3 s of a 65,000-event run)."""
     try:
         path = str(conf_dir())
     except USER_ERRORS as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
     main_of = hydra.main(version_base="1.3", config_path=path, config_name=config_name)
-    _run_reporting_missing_configs(main_of(guarded(task)))
-    _exit_if_jobs_failed()
+    try:
+        _run_reporting_missing_configs(main_of(guarded(task)))
+        _exit_if_jobs_failed()
+    finally:
+        gc.freeze()
 
 
 def _first_line(exc: Exception) -> str:
