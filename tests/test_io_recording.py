@@ -288,3 +288,48 @@ def test_ground_truth_errors(rec_dir: Path) -> None:
     motions.unlink()
     with pytest.raises(FileNotFoundError, match=r"motions\.json: not found; ground_truth/ needs"):
         read_recording(rec_dir)
+
+
+def _matplotlib_pixels(file: Path) -> np.ndarray:
+    """The reader's pixels as matplotlib's ``imread`` gives them (its reader until session
+    51): PNG as floats in [0, 1] rounded back to 8 bits, alpha and equal channels dropped."""
+    import matplotlib.image
+
+    image = matplotlib.image.imread(file)
+    if image.dtype.kind == "f":
+        image = np.round(image * 255)
+    image = image.astype(np.uint8)
+    if image.ndim == 3:
+        rgb = image[..., :3]
+        image = rgb[..., 0] if np.all(rgb == rgb[..., :1]) else rgb
+    return image
+
+
+@pytest.mark.parametrize(
+    ("mode", "suffix"),
+    [
+        ("L", ".png"),
+        ("RGB", ".png"),
+        ("RGBA", ".png"),
+        ("P", ".png"),
+        ("LA", ".png"),
+        ("1", ".png"),
+        ("I;16", ".png"),
+        ("L", ".jpg"),
+        ("RGB", ".jpg"),
+    ],
+)
+def test_keyframe_pixels_as_matplotlib_read_them(tmp_path: Path, mode: str, suffix: str) -> None:
+    """Every image mode a keyframe file may hold reads to the pixels matplotlib gave."""
+    from PIL import Image
+
+    rng = np.random.default_rng(7)
+    if mode == "I;16":
+        image = Image.fromarray(rng.integers(0, 65536, (H, W), dtype=np.uint16))
+    else:
+        image = Image.fromarray(rng.integers(0, 256, (H, W, 3), dtype=np.uint8)).convert(mode)
+    file = tmp_path / f"frame{suffix}"
+    image.save(file)
+    got = io_directory._read_image(file)
+    assert got.dtype == np.uint8
+    np.testing.assert_array_equal(got, _matplotlib_pixels(file))

@@ -2,7 +2,7 @@
 ``ValueError`` naming the file, the place in it, the problem and the fix.
 
 Every reader runs its third-party decoders (zipfile and numpy for ``.npz``/``.npy``, h5py,
-PIL through matplotlib, the Rust ``aedat`` extension) inside :func:`decoding`, so whatever
+Pillow, the Rust ``aedat`` extension) inside :func:`decoding`, so whatever
 they raise on damaged bytes (``BadZipFile``, ``KeyError``, ``SyntaxError``, a pyo3
 ``PanicException``, which is a ``BaseException``) reaches the caller as one line.
 """

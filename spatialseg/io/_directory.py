@@ -11,6 +11,7 @@ import json
 import math
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,6 +33,9 @@ from spatialseg.recording import (
     Keyframe,
     Recording,
 )
+
+if TYPE_CHECKING:
+    import PIL.Image
 
 __all__ = ["EVENT_FILES", "read_recording", "write_recording"]
 
@@ -105,17 +109,26 @@ def _read_depth_maps(root: Path) -> list[DepthMap]:
 
 def _read_image(file: Path) -> np.ndarray:
     """A keyframe image as uint8: (H, W) if its colour channels are equal, else (H, W, 3)."""
-    import matplotlib.image  # on first use: a recording without images never loads it
+    from PIL import Image  # Pillow alone: matplotlib's reader costs 0.2 s of imports
 
-    with decoding(file, "an image"):
-        image = matplotlib.image.imread(file)
-    if image.dtype.kind == "f":  # matplotlib reads PNG pixels as floats in [0, 1]
-        image = np.round(image * 255)
-    image = image.astype(np.uint8)
+    with decoding(file, "an image"), Image.open(file) as opened:
+        image = _eight_bit(opened)
     if image.ndim == 3:
         rgb = image[..., :3]
         image = rgb[..., 0] if np.all(rgb == rgb[..., :1]) else rgb
     return np.ascontiguousarray(image)
+
+
+def _eight_bit(image: PIL.Image.Image) -> np.ndarray:
+    """An opened image's pixels as uint8: grey, RGB or RGBA as stored, 16-bit grey scaled to
+    8 bits, bilevel as 0/255, any other mode (palette, grey with alpha) as RGBA."""
+    if image.mode in ("L", "RGB", "RGBA"):
+        return np.asarray(image)
+    if image.mode == "I" or image.mode.startswith("I;16"):
+        return np.round(np.asarray(image, dtype=np.float64) * (255 / 65535)).astype(np.uint8)
+    if image.mode == "1":
+        return np.asarray(image.convert("L"))
+    return np.asarray(image.convert("RGBA"))
 
 
 def _read_keyframes(root: Path) -> list[Keyframe]:
@@ -247,6 +260,13 @@ def _keyframe_rgb(index: int, keyframe: Keyframe) -> tuple[float, np.ndarray]:
     return float(keyframe.t), rgb
 
 
+def _save_png(file: Path, rgb: np.ndarray) -> None:
+    """Save a (H, W, 3) uint8 image as a PNG file."""
+    from PIL import Image
+
+    Image.fromarray(rgb).save(file, format="PNG")
+
+
 def _write_timed_files(
     root: Path,
     listing: str,
@@ -298,14 +318,12 @@ def write_recording(
     """Write a recording directory atomically (temporary sibling, then rename into place)."""
     if events_format not in _WRITE_FORMATS:
         raise ValueError(f"events_format={events_format!r}; use 'txt', 'h5' or 'npz'")
-    import matplotlib.image  # on first use, as in _read_image
-
     images = [_keyframe_rgb(i, k) for i, k in enumerate(recording.keyframes)]
     depths = [(d.t, d.depth) for d in recording.depth_maps]
     with atomic_directory(Path(path), overwrite=overwrite) as tmp:
         save_events(recording.events, tmp / f"events.{events_format}", events_format)
         _write_camera(recording.camera, tmp)
         _write_timed_files(tmp, "depthmaps.txt", "depth", ".npy", depths, np.save)
-        _write_timed_files(tmp, "images.txt", "images", ".png", images, matplotlib.image.imsave)
+        _write_timed_files(tmp, "images.txt", "images", ".png", images, _save_png)
         if recording.ground_truth is not None:
             _write_ground_truth(recording.ground_truth, tmp / "ground_truth")
