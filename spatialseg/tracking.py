@@ -31,7 +31,6 @@ import queue
 import shlex
 import statistics
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -45,7 +44,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from spatialseg import sweeps
+from spatialseg import sweeps, tracking_process
 from spatialseg.interrupts import interruption, raise_pending, stopped
 
 __all__ = [
@@ -313,10 +312,12 @@ class LiveRun:
         self._windows = 0  # windows whose metrics are logged
 
     def start(self, cfg: DictConfig) -> None:
-        """Start the worker and ask it to create the run, stamped now, with the job's code
-        version and config; the run is RUNNING (and says how to open it) once created."""
+        """Take the worker (started with the command, or now: :mod:`spatialseg.tracking_process`)
+        and ask it to create the run, stamped now, with the job's code version and config; the
+        run is RUNNING (and says how to open it) once created."""
         settings = _settings(cfg)
         if settings is None:
+            tracking_process.stop_early()
             return
         hc = HydraConfig.get()
         job = {
@@ -328,9 +329,8 @@ class LiveRun:
             "params": list(flatten(OmegaConf.to_container(cfg, resolve=True))),
             "config_yaml": OmegaConf.to_yaml(cfg, resolve=True),
         }
-        command = [sys.executable, "-m", "spatialseg.tracking_worker"]
         try:
-            self._worker = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+            self._worker = tracking_process.take()
         except OSError as exc:
             self._warn(exc)
             return

@@ -148,6 +148,9 @@ def main() -> None:
     without tearing MLflow's modules down (most of a second the job would wait for)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    with contextlib.suppress(ImportError):  # else the run's start warns why
+        import mlflow.tracking  # noqa: F401  (now: a worker started early imports it meanwhile)
+
     serve(sys.stdin.buffer, sys.stdout.buffer)
     os._exit(0)
 
