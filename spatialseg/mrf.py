@@ -108,20 +108,60 @@ def _expand(
     """One expansion move: every event keeps its label or takes ``alpha``, whichever set of
     choices lowers the energy most, found as one minimum cut (an event on the sink side takes
     ``alpha``). The pairwise term of a pair is written as linear terms on each event and a
-    directed edge (Kolmogorov and Zabih, 2004)."""
+    directed edge (Kolmogorov and Zabih, 2004).
+
+    Only events not labelled ``alpha`` enter the graph, with the pairs among them: an event
+    labelled ``alpha`` has both terminal weights and every pair's edge zero (its two choices
+    are one label), so it would sit alone in the graph; left out, the cut is the same and
+    costs half the time with two labels."""
     n = len(labels)
-    keep = cost[np.arange(n), labels]
-    both_kept = weight * (labels[first] != labels[second])  # E00
-    first_kept = weight * (labels[first] != alpha)  # E01: first keeps, second moves
-    second_kept = weight * (labels[second] != alpha)  # E10: first moves, second keeps
-    delta = cost[:, alpha] - keep
-    delta += np.bincount(first, second_kept - both_kept, minlength=n)
-    delta -= np.bincount(second, second_kept, minlength=n)
-    graph = maxflow.Graph[float](n, len(first))
-    nodes = graph.add_nodes(n)
-    graph.add_grid_tedges(nodes, np.maximum(delta, 0.0), np.maximum(-delta, 0.0))
-    cut = first_kept + second_kept - both_kept  # >= 0: the Potts term is a metric
-    graph.add_edges(first, second, cut, np.zeros_like(cut))
+    free = labels != alpha
+    if not free.any():
+        return labels
+    node = np.cumsum(free) - 1  # each free event's node in the graph
+    into_first, into_second, a, b, cut = _pair_terms(labels, first, second, weight, alpha, node)
+    delta = cost[:, alpha] - cost[np.arange(n), labels]
+    delta += into_first
+    delta -= into_second
+    graph = maxflow.Graph[float](int(node[-1]) + 1, len(a))
+    nodes = graph.add_nodes(int(node[-1]) + 1)
+    graph.add_grid_tedges(nodes, np.maximum(delta[free], 0.0), np.maximum(-delta[free], 0.0))
+    graph.add_edges(a, b, cut, np.zeros_like(cut))
     graph.maxflow()
-    moved = graph.get_grid_segments(nodes)
+    moved = np.zeros(n, dtype=np.bool_)
+    moved[free] = graph.get_grid_segments(nodes)
     return np.where(moved, alpha, labels)
+
+
+@njit(cache=True)
+def _pair_terms(
+    labels: np.ndarray,
+    first: np.ndarray,
+    second: np.ndarray,
+    weight: float,
+    alpha: int,
+    node: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An expansion's pairwise terms in one pass over the pairs, summed in pair order: the
+    linear terms on each pair's first event (E10 - E00) and second (-E10, subtracted), and
+    the edge (node of first, node of second, E01 + E10 - E00) of each pair whose events are
+    both free (neither labelled ``alpha``). E00: both keep, E01: first keeps, E10: second
+    keeps, each ``weight`` where the two labels differ."""
+    into_first = np.zeros(len(labels))
+    into_second = np.zeros(len(labels))
+    a = np.empty(len(first), dtype=np.int64)
+    b = np.empty(len(first), dtype=np.int64)
+    cut = np.empty(len(first))
+    m = 0
+    for e in range(len(first)):
+        i, j = first[e], second[e]
+        both_kept = weight * (labels[i] != labels[j])
+        first_kept = weight * (labels[i] != alpha)
+        second_kept = weight * (labels[j] != alpha)
+        into_first[i] += second_kept - both_kept
+        into_second[j] += second_kept
+        if labels[i] != alpha and labels[j] != alpha:
+            a[m], b[m] = node[i], node[j]
+            cut[m] = first_kept + second_kept - both_kept  # > 0: the Potts term is a metric
+            m += 1
+    return into_first, into_second, a[:m], b[:m], cut[:m]

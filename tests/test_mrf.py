@@ -6,6 +6,7 @@ from __future__ import annotations
 import itertools
 from dataclasses import replace
 
+import maxflow
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -62,6 +63,43 @@ def test_the_labels_returned_are_a_fixed_point_of_every_expansion(k):
     cost = -np.log(np.maximum(p, FLOOR))
     for alpha in range(k):
         assert np.array_equal(_expand(cost, labels, first, second, 1.0, alpha), labels)
+
+
+def _full_graph_expand(cost, labels, first, second, weight, alpha):
+    """The expansion move with every event in the graph (the implementation until session 51)."""
+    n = len(labels)
+    both_kept = weight * (labels[first] != labels[second])
+    first_kept = weight * (labels[first] != alpha)
+    second_kept = weight * (labels[second] != alpha)
+    delta = cost[:, alpha] - cost[np.arange(n), labels]
+    delta += np.bincount(first, second_kept - both_kept, minlength=n)
+    delta -= np.bincount(second, second_kept, minlength=n)
+    graph = maxflow.Graph[float](n, len(first))
+    nodes = graph.add_nodes(n)
+    graph.add_grid_tedges(nodes, np.maximum(delta, 0.0), np.maximum(-delta, 0.0))
+    cut = first_kept + second_kept - both_kept
+    graph.add_edges(first, second, cut, np.zeros_like(cut))
+    graph.maxflow()
+    return np.where(graph.get_grid_segments(nodes), alpha, labels)
+
+
+@pytest.mark.parametrize("k", [2, 3, 5])
+def test_an_expansion_over_the_free_events_is_the_one_over_every_event(k):
+    """Leaving the events labelled alpha out of the graph changes no label: the same cut."""
+    rng = np.random.default_rng(10 + k)
+    points = rng.uniform(0, 12, (3000, 3))
+    first, second = neighbour_pairs(points)
+    cost = -np.log(np.maximum(rng.dirichlet(np.full(k, 0.7), size=len(points)), FLOOR))
+    for weight in (0.37, 1.0, 3.0):
+        labels = rng.integers(0, k, len(points))
+        for alpha in range(k):
+            expected = _full_graph_expand(cost, labels, first, second, weight, alpha)
+            assert not np.array_equal(expected, labels)  # the move changes labels
+            np.testing.assert_array_equal(
+                _expand(cost, labels, first, second, weight, alpha), expected
+            )
+    everyone = np.zeros(len(points), dtype=np.int64)
+    np.testing.assert_array_equal(_expand(cost, everyone, first, second, 1.0, 0), everyone)
 
 
 def test_an_isolated_weak_label_is_outvoted_and_a_confident_one_kept():
