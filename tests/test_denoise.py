@@ -11,7 +11,7 @@ from spatialseg.events import EventStream
 from spatialseg.points import prepare
 from spatialseg.recording import Camera, DepthMap, Recording
 from spatialseg.settings import settings_from
-from spatialseg.window import nearest_memberships, segment_window
+from spatialseg.window import nearest_memberships, segment_window, unique_rows
 from tests.test_pipeline import _config
 
 WIDTH, HEIGHT = 64, 48
@@ -156,3 +156,18 @@ def test_an_event_no_volume_reaches_takes_the_mean_memberships_at_the_nearest_po
     queries = np.array([[-40.0, 1.0, 2.0], [6.0, 5.0, 3.0]])
     got = nearest_memberships(points, memberships, queries)
     np.testing.assert_allclose(got, [[0.5, 0.5], [0.2, 0.8]])
+
+
+@pytest.mark.parametrize("columns", [1, 3])
+def test_unique_rows_are_numpys(columns):
+    """The distinct rows and each row's index among them, as ``np.unique(axis=0)`` gives
+    them: rows repeated, rows equal in their first columns only, negative zero."""
+    rng = np.random.default_rng(columns)
+    points = rng.integers(-3, 3, (5000, columns)).astype(np.float64) / 2
+    points[::7, -1] += rng.uniform(0, 1e-9, len(points[::7]))
+    points[1] = -0.0 * points[1]
+    unique, inverse = unique_rows(points)
+    expected, expected_inverse = np.unique(points, axis=0, return_inverse=True)
+    np.testing.assert_array_equal(unique, expected)
+    np.testing.assert_array_equal(inverse, expected_inverse.reshape(-1))
+    assert len(unique) < len(points)
