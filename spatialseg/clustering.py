@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, TypeVar
 
+import numba
 import numpy as np
 from numba import njit
 from scipy.spatial import cKDTree
@@ -216,7 +217,8 @@ def initial_memberships(
     nearest = labels.copy()
     if not known.all():
         tree = cKDTree(points[known] / scale)
-        nearest[~known] = labels[known][tree.query(points[~known] / scale)[1]]
+        found = tree.query(points[~known] / scale, workers=numba.get_num_threads())[1]
+        nearest[~known] = labels[known][found]
     p = np.full((m, k), (1.0 - confidence) / (k - 1))
     p[np.arange(m), nearest] = confidence
     return p
