@@ -143,10 +143,10 @@ def _pair_terms(
     node: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """An expansion's pairwise terms in one pass over the pairs, summed in pair order: the
-    linear terms on each pair's first event (E10 - E00) and second (-E10, subtracted), and
-    the edge (node of first, node of second, E01 + E10 - E00) of each pair whose events are
-    both free (neither labelled ``alpha``). E00: both keep, E01: first keeps, E10: second
-    keeps, each ``weight`` where the two labels differ."""
+    linear term added on each pair's first event (E10 - E00) and the one subtracted on its
+    second (E10), and the edge (node of first, node of second, E01 + E10 - E00) of each
+    pair whose events are both free (neither labelled ``alpha``). E00: both keep, E01: the
+    first keeps, E10: the second keeps; each ``weight`` where the two labels differ."""
     into_first = np.zeros(len(labels))
     into_second = np.zeros(len(labels))
     a = np.empty(len(first), dtype=np.int64)

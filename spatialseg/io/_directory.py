@@ -125,7 +125,8 @@ def _eight_bit(image: PIL.Image.Image) -> np.ndarray:
     if image.mode in ("L", "RGB", "RGBA"):
         return np.asarray(image)
     if image.mode == "I" or image.mode.startswith("I;16"):
-        return np.round(np.asarray(image, dtype=np.float64) * (255 / 65535)).astype(np.uint8)
+        scaled = np.round(np.asarray(image, dtype=np.float64) * (255 / 65535))
+        return np.clip(scaled, 0, 255).astype(np.uint8)
     if image.mode == "1":
         return np.asarray(image.convert("L"))
     return np.asarray(image.convert("RGBA"))
