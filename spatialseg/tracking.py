@@ -364,7 +364,7 @@ class LiveRun:
         self._windows = len(windows)
         self._outbox.put(("metrics", points, now_ms()))
         self._outbox.put(("outputs", str(out_dir)))
-        answer = self._answer()
+        answer = self._answer("hint")
         return answer[1] if answer[0] == "hint" else None
 
     def end(self, status: str, error: BaseException | None = None) -> None:
@@ -375,7 +375,7 @@ class LiveRun:
         text = None if error is None else f"{type(error).__name__}: {error}"
         self._outbox.put(("end", status, text))
         self._outbox.put(None)
-        answer = self._answer()
+        answer = self._answer("ended")
         worker, self._worker = self._worker, None
         try:
             worker.wait(timeout=WORKER_EXIT_TIMEOUT)
@@ -384,9 +384,11 @@ class LiveRun:
         if answer[0] == "ended" and answer[1] and status != "FINISHED":
             self._say(status)  # a finished run's report names it
 
-    def _answer(self) -> tuple:
-        """The worker's next answer (``("gone",)`` if it exited without one)."""
-        answer = self._answers.get()
+    def _answer(self, kind: str) -> tuple:
+        """The worker's next answer of ``kind`` (``("gone",)`` if it exited without one); an
+        earlier answer left unread, as when Ctrl-C stopped :meth:`finish`, is skipped."""
+        while (answer := self._answers.get())[0] not in (kind, "gone"):
+            pass
         if answer[0] == "gone":
             self._warn("the tracking process exited")
         return answer

@@ -239,6 +239,11 @@ def test_user_error_ends_the_run_failed(tmp_path):
     assert f"MLflow: FAILED run {run.info.run_id}; to browse: mlflow ui" in res.stdout
 
 
+#: A job whose run opens seconds before its end (twelve windows; three end about a second
+#: after the run opens), so that a signal sent once it is RUNNING finds it at work.
+LONG_JOB = ("+scene=interior", "window.count=12", "output.plots=false")
+
+
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_signalled_job_is_running_then_killed(tmp_path, signum):
     """A job is RUNNING in the store, with its params and code version, while it works; a
@@ -246,7 +251,7 @@ def test_signalled_job_is_running_then_killed(tmp_path, signum):
     from mlflow.tracking import MlflowClient
 
     db = tmp_path / "mlflow.db"
-    args = ("+scene=interior", "output.plots=false", f"tracking.uri=sqlite:///{db}")
+    args = (*LONG_JOB, f"tracking.uri=sqlite:///{db}")
     command = [sys.executable, "-m", "spatialseg", *args, f"hydra.run.dir={tmp_path / 'run'}"]
     with subprocess.Popen(
         command,
@@ -257,7 +262,7 @@ def test_signalled_job_is_running_then_killed(tmp_path, signum):
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # not a shell's SIG_IGN
     ) as proc:
         assert proc.stdout is not None
-        for line in proc.stdout:  # the run is open; simulating 45,000 events is ahead
+        for line in proc.stdout:  # the run is open; most of the job is ahead
             if "MLflow: RUNNING run " in line:
                 break
         run_id = line.split("RUNNING run ")[1].split(";")[0]
@@ -275,6 +280,26 @@ def test_signalled_job_is_running_then_killed(tmp_path, signum):
     assert f"MLflow: KILLED run {run_id}; to browse: mlflow ui" in stdout
 
 
+def test_a_run_stopped_while_it_logged_its_end_still_says_killed(caplog):
+    """Ctrl-C while :meth:`LiveRun.finish` waited for the worker's hint leaves that hint
+    unread: ending the run KILLED skips it and still says so, with the run's id."""
+    from spatialseg.tracking import LiveRun
+
+    class Worker:
+        def wait(self, timeout):
+            return 0
+
+    run = LiveRun()
+    run._worker, run.run_id, run._uri = Worker(), "abc", "sqlite:///mlflow.db"
+    run._answers.put(("hint", "mlflow ui"))  # the interrupted finish's answer
+    run._answers.put(("ended", True))
+    with caplog.at_level("INFO", logger="spatialseg"):
+        run.end("KILLED")
+    assert [r.getMessage() for r in caplog.records] == [
+        "MLflow: KILLED run abc; to browse: mlflow ui --backend-store-uri sqlite:///mlflow.db"
+    ]
+
+
 def test_a_job_killed_outright_leaves_its_run_killed(tmp_path):
     """SIGKILL gives the job no chance to end its run: the tracking process sees the job's
     pipe close and ends the run KILLED, not RUNNING forever."""
@@ -283,7 +308,7 @@ def test_a_job_killed_outright_leaves_its_run_killed(tmp_path):
     from mlflow.tracking import MlflowClient
 
     db = tmp_path / "mlflow.db"
-    args = ("+scene=interior", "output.plots=false", f"tracking.uri=sqlite:///{db}")
+    args = (*LONG_JOB, f"tracking.uri=sqlite:///{db}")
     command = [sys.executable, "-m", "spatialseg", *args, f"hydra.run.dir={tmp_path / 'run'}"]
     with subprocess.Popen(command, cwd=tmp_path, stdout=subprocess.PIPE, text=True) as proc:
         assert proc.stdout is not None
