@@ -39,6 +39,11 @@ from spatialseg.tracking import (
     store_client,
 )
 
+#: This process's niceness (the lowest priority): its seconds of MLflow import and logging
+#: take the cores only when the job's segmentation leaves them idle, instead of slowing the
+#: job's parallel kernels on a machine with few cores (docs/performance.md, session 52).
+NICENESS = 19
+
 
 class Worker:
     """The job's client and run, answering each request on ``out``."""
@@ -144,8 +149,11 @@ def serve(inp: BinaryIO, out: BinaryIO) -> None:
 
 
 def main() -> None:
-    """Serve the job on stdin and stdout, leaving its signals to it; exit at once after,
-    without tearing MLflow's modules down (most of a second the job would wait for)."""
+    """Serve the job on stdin and stdout, at the lowest CPU priority and leaving its
+    signals to it; exit at once after, without tearing MLflow's modules down (most of a
+    second the job would wait for)."""
+    if hasattr(os, "nice"):  # POSIX; elsewhere it keeps the job's priority
+        os.nice(NICENESS)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     with contextlib.suppress(ImportError):  # else the run's start warns why

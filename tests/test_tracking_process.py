@@ -98,3 +98,21 @@ def test_an_untaken_worker_is_stopped_when_the_command_exits() -> None:
     pid = int(done.stdout.split()[0])
     with pytest.raises(ProcessLookupError):  # reaped by the command, so no process is left
         os.kill(pid, 0)
+
+
+@pytest.mark.skipif(not hasattr(os, "getpriority"), reason="POSIX process priorities")
+def test_the_worker_runs_at_the_lowest_priority() -> None:
+    """The worker's MLflow work yields the cores to the job's segmentation."""
+    import time
+
+    from spatialseg.tracking_worker import NICENESS
+
+    worker = tracking_process.start()
+    try:
+        deadline = time.monotonic() + 30  # its imports come first
+        while os.getpriority(os.PRIO_PROCESS, worker.pid) != NICENESS:
+            assert worker.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
+    finally:
+        worker.kill()
+        worker.wait()
