@@ -12,10 +12,10 @@ lets its neighbours outvote a weak membership, not a confident one.
 from __future__ import annotations
 
 import maxflow
-import numba
 import numpy as np
 from numba import njit, prange
-from scipy.spatial import cKDTree
+
+from spatialseg.neighbours import nearest_neighbours
 
 __all__ = ["NEIGHBOURS", "neighbour_pairs", "potts_labels", "space_time"]
 
@@ -36,14 +36,12 @@ def space_time(xy: np.ndarray, t: np.ndarray, speed: float) -> np.ndarray:
 
 def neighbour_pairs(points: np.ndarray, k: int = NEIGHBOURS) -> tuple[np.ndarray, np.ndarray]:
     """The undirected pairs (i < j, each once, in order of i then j) of every point and its
-    ``k`` nearest others; the search runs on as many cores as the kernels (numba's threads)."""
+    ``k`` nearest others (:func:`spatialseg.neighbours.nearest_neighbours`)."""
     n = len(points)
     if n < 2:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     k = min(k, n - 1)
-    tree = cKDTree(points, compact_nodes=False, balanced_tree=False)  # built faster, same answer
-    found = tree.query(points, k=k + 1, workers=numba.get_num_threads())[1]
-    others = np.ascontiguousarray(found[:, 1:], dtype=np.int64)
+    others = nearest_neighbours(points, k)
     keep = _own_pairs(others)
     a = np.repeat(np.arange(n, dtype=np.int64), k)[keep.reshape(-1)]
     b = others[keep]
@@ -53,17 +51,15 @@ def neighbour_pairs(points: np.ndarray, k: int = NEIGHBOURS) -> tuple[np.ndarray
 @njit(cache=True, parallel=True)
 def _own_pairs(others: np.ndarray) -> np.ndarray:
     """``keep[i, m]``: whether point ``i`` and its ``m``-th neighbour ``others[i, m]`` make a
-    pair listed from ``i``: not ``i`` itself (duplicate points may return themselves), nor a
-    lower-numbered point that lists ``i`` too (the pair is kept from there). A per-pair check
-    in one parallel pass, several times faster than deduplicating with ``np.unique``."""
+    pair listed from ``i``: not when a lower-numbered point lists ``i`` too (the pair is kept
+    from there). A per-pair check in one parallel pass, several times faster than
+    deduplicating with ``np.unique``."""
     n, k = others.shape
     keep = np.ones((n, k), dtype=np.bool_)
     for i in prange(n):
         for m in range(k):
             j = others[i, m]
-            if j == i:
-                keep[i, m] = False
-            elif j < i:
+            if j < i:
                 for q in range(k):
                     if others[j, q] == i:
                         keep[i, m] = False

@@ -1,0 +1,85 @@
+"""The grid search for each point's nearest others: exact, ties to the lower index, the same
+whatever the threads."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from spatialseg.neighbours import nearest_neighbours
+
+
+def _brute_force(points: np.ndarray, k: int) -> np.ndarray:
+    """Each point's k nearest others by squared distance (summed over x, y, z in order),
+    ties to the lower index."""
+    distance = ((points[:, None] - points[None]) ** 2).sum(axis=2)
+    np.fill_diagonal(distance, np.inf)
+    return np.argsort(distance, axis=1, kind="stable")[:, :k]
+
+
+def _clustered(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Points crowded round a few centres in a wide box, most of the box empty."""
+    centres = rng.uniform(0, 300, (5, 3))
+    return centres[rng.integers(0, 5, n)] + rng.normal(0, 2.0, (n, 3))
+
+
+@pytest.mark.parametrize(
+    "layout",
+    ["uniform", "clustered", "flat", "pixels", "duplicates", "two"],
+)
+def test_every_points_nearest_others_in_order(layout):
+    """The same neighbours, in the same order, as a search of every pair."""
+    rng = np.random.default_rng(3)
+    k = 1 if layout == "two" else 6
+    points = {
+        "uniform": lambda: rng.uniform(0, 50, (700, 3)),
+        "clustered": lambda: _clustered(rng, 700),
+        "flat": lambda: np.column_stack([rng.uniform(0, 40, (700, 2)), np.zeros(700)]),
+        # integer pixels, times on a coarse clock: many exact ties in distance
+        "pixels": lambda: np.column_stack(
+            [rng.integers(0, 30, (700, 2)), rng.integers(0, 5, 700) * 0.5]
+        ).astype(float),
+        "duplicates": lambda: np.repeat(rng.uniform(0, 10, (150, 3)), 4, axis=0),
+        "two": lambda: np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]),
+    }[layout]()
+    assert np.array_equal(nearest_neighbours(points, k), _brute_force(points, k))
+
+
+def test_the_same_neighbours_as_a_k_d_tree_on_many_points():
+    """On 200,000 points in general position, scipy's k-d tree finds the same sets."""
+    rng = np.random.default_rng(7)
+    points = np.column_stack([rng.integers(0, 346, 200_000), rng.integers(0, 260, 200_000)])
+    points = np.column_stack([points, rng.uniform(0, 25, 200_000)]).astype(float)
+    found = nearest_neighbours(points, 8)
+    expected = cKDTree(points).query(points, k=9)[1][:, 1:]
+    assert np.array_equal(np.sort(found, axis=1), np.sort(expected, axis=1))
+
+
+def test_the_answer_does_not_depend_on_the_threads():
+    rng = np.random.default_rng(11)
+    points = np.column_stack(
+        [rng.integers(0, 40, (5000, 2)), rng.integers(0, 20, 5000) * 0.25]
+    ).astype(float)
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = nearest_neighbours(points, 8)
+    finally:
+        numba.set_num_threads(threads)
+    assert np.array_equal(one, nearest_neighbours(points, 8))
+
+
+@pytest.mark.parametrize(
+    ("points", "k", "match"),
+    [
+        (np.zeros((5, 2)), 2, "N x 3"),
+        (np.array([[0.0, 0.0, np.nan], [1.0, 1.0, 1.0]]), 1, "finite"),
+        (np.zeros((5, 3)), 5, "below the 5 points"),
+        (np.zeros((5, 3)), 0, "at least 1"),
+    ],
+)
+def test_bad_input_is_refused(points, k, match):
+    with pytest.raises(ValueError, match=match):
+        nearest_neighbours(points, k)
