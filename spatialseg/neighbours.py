@@ -153,10 +153,11 @@ def _search(grouped, k, lo, size, shape, order, starts, margin):
                 x_edge = abs(cx - home[0]) == r
                 for cy in range(max(home[1] - r, 0), min(home[1] + r, shape[1] - 1) + 1):
                     gy = _gap(p[1], lo[1] + cy * size, size)
-                    xy_edge = x_edge or abs(cy - home[1]) == r
-                    for cz in range(max(home[2] - r, 0), min(home[2] + r, shape[2] - 1) + 1):
-                        if not (xy_edge or abs(cz - home[2]) == r):
-                            continue  # searched in an earlier ring
+                    # inside the ring in x and y: only its two faces in z are new cells
+                    z_step = 1 if x_edge or abs(cy - home[1]) == r else 2 * r
+                    for cz in range(home[2] - r, home[2] + r + 1, z_step):
+                        if cz < 0 or cz >= shape[2]:
+                            continue
                         gz = _gap(p[2], lo[2] + cz * size, size)
                         if count == k:
                             gap = max(np.sqrt(gx * gx + gy * gy + gz * gz) - margin, 0.0)
