@@ -59,13 +59,20 @@ class ClusterEvaluator(Protocol):
 
     dim: int
     n_events: int
+    #: Its event order: weights and responses ``ordered`` list input event ``order[i]`` i-th.
+    order: np.ndarray
 
-    def set_weights(self, weights: np.ndarray) -> None: ...
+    def set_weights(self, weights: np.ndarray, *, ordered: bool = False) -> None: ...
     def value(self, theta: np.ndarray) -> float: ...
     def grad(self, theta: np.ndarray) -> np.ndarray: ...
     def batch_value(self, thetas: np.ndarray) -> np.ndarray: ...
     def p_step(
-        self, theta: np.ndarray, sigma: float | Sequence[float], stride: int = 1
+        self,
+        theta: np.ndarray,
+        sigma: float | Sequence[float],
+        stride: int = 1,
+        *,
+        ordered: bool = False,
     ) -> tuple[np.ndarray, float]: ...
 
 
@@ -348,25 +355,42 @@ def cluster_responses(
     p: np.ndarray,
     sigma: float | Sequence[float],
     stride: int,
+    *,
+    ordered: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``c_j(x'_kj)``: each cluster's (smoothed) volume sampled at its warped events (N x K),
-    and each cluster's contrast over all events (K,), from the same votes."""
+    and each cluster's contrast over all events (K,), from the same votes; memberships and
+    responses in the evaluator's :attr:`~ClusterEvaluator.order` if ``ordered``."""
     responses = np.empty_like(p)
     values = np.empty(len(thetas))
     for j, theta in enumerate(thetas):
-        evaluator.set_weights(p[:, j])
-        responses[:, j], values[j] = evaluator.p_step(theta, sigma, stride)
+        evaluator.set_weights(p[:, j], ordered=ordered)
+        responses[:, j], values[j] = evaluator.p_step(theta, sigma, stride, ordered=ordered)
     return responses, values
 
 
+def _step_rows(step: StepStage, order: np.ndarray) -> np.ndarray:
+    """The rows of memberships held in ``order`` (the P-step evaluator's) that the
+    theta-step's evaluator takes, in its own order."""
+    position = np.empty_like(order)
+    position[order] = np.arange(len(order))
+    return position[np.arange(len(order))[step.subset]][step.evaluator.order]
+
+
 def _theta_step(
-    step: StepStage, thetas: np.ndarray, p: np.ndarray, bounds: np.ndarray, seeds: np.ndarray
+    step: StepStage,
+    rows: np.ndarray,
+    thetas: np.ndarray,
+    p: np.ndarray,
+    bounds: np.ndarray,
+    seeds: np.ndarray,
 ) -> int:
-    """Each cluster's velocity (rows of ``thetas``, in place) maximised on its weighted events,
-    one optimiser seed each; return the evaluations spent."""
+    """Each cluster's velocity (rows of ``thetas``, in place) maximised on its weighted events
+    (``p``'s ``rows``: :func:`_step_rows`), one optimiser seed each; return the evaluations
+    spent."""
     evals = 0
     for j in range(len(thetas)):
-        step.evaluator.set_weights(p[step.subset, j])
+        step.evaluator.set_weights(p[rows, j], ordered=True)
         thetas[j], n = maximize_contrast(
             step.evaluator, step.optimizer, thetas[j], bounds, step.budget, int(seeds[j])
         )
@@ -409,9 +433,12 @@ def iterative_clustering(
         raise ValueError("n_clusters must be >= 1")
     seeds = np.random.default_rng(seed).integers(0, 2**31 - 1, size=(rules.max_iterations, k))
     n_events = evaluator.n_events
-    p = np.array(init_p, dtype=np.float64, copy=True)
+    p = np.asarray(init_p, dtype=np.float64)
     if p.shape != (n_events, k):
         raise ValueError(f"initial memberships have shape {p.shape}, expected {(n_events, k)}")
+    order = evaluator.order
+    p = p[order]  # the loop's memberships in the evaluator's order: no gather, no scatter
+    rows = _step_rows(step, order)
     values = np.zeros(k)
     history: list[IterationRecord] = []
     labels = p.argmax(axis=1)
@@ -422,9 +449,11 @@ def iterative_clustering(
         evals = 0
         if still < rules.patience:
             before = thetas.copy()
-            evals = _theta_step(step, thetas, p, bounds, seeds[it])
+            evals = _theta_step(step, rows, thetas, p, bounds, seeds[it])
             still = still + 1 if np.array_equal(thetas, before) else 0
-        responses, values = cluster_responses(evaluator, thetas, p, p_step_sigma, p_step_stride)
+        responses, values = cluster_responses(
+            evaluator, thetas, p, p_step_sigma, p_step_stride, ordered=True
+        )
         p = update_memberships(responses)
         previous, labels = labels, p.argmax(axis=1)
         changed = float(np.mean(labels != previous)) if n_events else 0.0
@@ -439,7 +468,9 @@ def iterative_clustering(
     converged = bool(reason)
     if not converged:
         reason = f"iteration limit {rules.max_iterations} reached"
-    return ClusteringResult(thetas, p, values.copy(), history, converged, reason)
+    memberships = np.empty_like(p)
+    memberships[order] = p
+    return ClusteringResult(thetas, memberships, values.copy(), history, converged, reason)
 
 
 #: A cluster that is the likeliest for under this share of the events is empty (mean

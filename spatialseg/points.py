@@ -254,9 +254,14 @@ class ModelEvaluator:
         full[: self.dim] = theta
         return full
 
-    def set_weights(self, weights: np.ndarray) -> None:
-        """Memberships of the cluster being optimised."""
-        self.inner.set_weights(weights)
+    @property
+    def order(self) -> np.ndarray:
+        """The volume's event order (:attr:`~spatialseg.volume.VolumeObjective.order`)."""
+        return self.inner.order
+
+    def set_weights(self, weights: np.ndarray, *, ordered: bool = False) -> None:
+        """Memberships of the cluster being optimised (in :attr:`order` if ``ordered``)."""
+        self.inner.set_weights(weights, ordered=ordered)
 
     def value(self, theta: np.ndarray) -> float:
         """Contrast of the volume warped by ``theta``."""
@@ -285,11 +290,17 @@ class ModelEvaluator:
         return self.inner.volume(self._full(theta))
 
     def p_step(
-        self, theta: np.ndarray, sigma: float | Sequence[float], stride: int = 1
+        self,
+        theta: np.ndarray,
+        sigma: float | Sequence[float],
+        stride: int = 1,
+        *,
+        ordered: bool = False,
     ) -> tuple[np.ndarray, float]:
         """The volume for ``theta``, smoothed by ``sigma`` voxels (one number, or x, y,
-        depth), at each warped event, and the contrast of the volume (the P-step)."""
-        return self.inner.p_step(self._full(theta), sigma, stride)
+        depth), at each warped event (in :attr:`order` if ``ordered``), and the contrast of
+        the volume (the P-step)."""
+        return self.inner.p_step(self._full(theta), sigma, stride, ordered=ordered)
 
 
 def window_objective(

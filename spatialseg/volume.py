@@ -522,10 +522,18 @@ class VolumeObjective:
         """Number of events N."""
         return len(self._dt)
 
-    def set_weights(self, weights: np.ndarray) -> None:
-        """Replace the memberships ``p_kj`` (N values, finite), e.g. after a P-step."""
+    @property
+    def order(self) -> np.ndarray:
+        """The kernels' event order (N,): their i-th event is input event ``order[i]``.
+        Weights set and responses returned ``ordered`` are in it, saving a gather and a
+        scatter over every event per call."""
+        return self._order
+
+    def set_weights(self, weights: np.ndarray, *, ordered: bool = False) -> None:
+        """Replace the memberships ``p_kj`` (N values, finite), e.g. after a P-step; in the
+        input order, or in :attr:`order` if ``ordered``."""
         w = _finite_array("weights", weights, (self.n_events,), np.float64)
-        self._weights[:] = w[self._order]
+        self._weights[:] = w if ordered else w[self._order]
 
     def _args(self, theta: np.ndarray) -> tuple:
         """The kernels' event and grid arguments at ``theta`` (validated: finite 3-vector)."""
@@ -699,12 +707,18 @@ class VolumeObjective:
         return sigmas, float(np.prod(strides))
 
     def p_step(
-        self, theta: np.ndarray, sigma: float | Sequence[float], stride: int = 1
+        self,
+        theta: np.ndarray,
+        sigma: float | Sequence[float],
+        stride: int = 1,
+        *,
+        ordered: bool = False,
     ) -> tuple[np.ndarray, float]:
         """``V(theta)`` smoothed by a Gaussian of ``sigma`` voxels (one number, or one per axis
         x, y, depth; axes with one voxel left alone; mirrored at the grid's border) and
-        interpolated at each warped event (N,): the P-step's ``c_j(x'_kj)``; and the
-        objective of ``V(theta)``. In buffers reused from call to call.
+        interpolated at each warped event (N, in the input order, or in :attr:`order` if
+        ``ordered``): the P-step's ``c_j(x'_kj)``; and the objective of ``V(theta)``. In
+        buffers reused from call to call.
 
         ``stride`` > 1 votes, smooths and samples on a grid that many times coarser in x and
         y, per fine voxel's area; the Gaussian there is narrowed so that it and the coarser
@@ -735,8 +749,11 @@ class VolumeObjective:
         _sample(
             *events[:2], *events[3:], *grid_args, sampled_from, self._cells, self._fracs, sampled
         )
+        sampled /= per_voxel
+        if ordered:
+            return sampled, value
         out = np.empty_like(sampled)
-        out[self._order] = sampled / per_voxel
+        out[self._order] = sampled
         return out, value
 
     def sample(self, theta: np.ndarray, volume: np.ndarray | None = None) -> np.ndarray:

@@ -13,6 +13,8 @@ import optimizers
 from spatialseg.clustering import (
     ConvergenceRules,
     IterationRecord,
+    StepStage,
+    _step_rows,
     _stop_reason,
     cluster_responses,
     initial_memberships,
@@ -257,3 +259,17 @@ def test_the_theta_steps_stop_once_patience_of_them_moved_no_velocity(shift, sea
     changed = [r.labels_changed for r in result.history]
     assert changed[0] > 0  # the P-steps go on: the flow start's soft memberships harden
     assert np.mean(result.probabilities.argmax(axis=1) == labels) > 0.95
+
+
+@pytest.mark.parametrize("subset", [slice(None), np.array([7, 2, 9, 4, 0, 5])])
+def test_the_theta_steps_rows_are_its_events_in_its_own_order(subset):
+    """The loop keeps memberships in the P-step evaluator's order; the theta-step's evaluator
+    (of a subset of the events, in its own order) reads its events' rows from them."""
+    rng = np.random.default_rng(5)
+    memberships = rng.uniform(size=(10, 2))
+    order = rng.permutation(10)
+    size = len(np.arange(10)[subset])
+    step = StepStage(SimpleNamespace(order=rng.permutation(size)), None, 1, subset)
+    rows = _step_rows(step, order)
+    expected = memberships[subset][step.evaluator.order]
+    assert np.array_equal(memberships[order][rows], expected)

@@ -298,6 +298,21 @@ def test_p_step_is_the_references(grid, sigma):
         assert not ev._padded.any()
 
 
+@pytest.mark.parametrize("stride", [1, 2])
+def test_weights_and_responses_in_the_kernels_order_are_the_same_ones(stride):
+    """Weights set and responses read in :attr:`VolumeObjective.order` are the input order's
+    permuted, to the bit, and the objective the same."""
+    points, dt, w = _events(400, seed=10)
+    ev = VolumeObjective(points, dt, GRID, "variance")
+    order = ev.order
+    assert np.array_equal(np.sort(order), np.arange(400))
+    ev.set_weights(w)
+    responses, value = ev.p_step(THETA, 1.5, stride)
+    ev.set_weights(w[order], ordered=True)
+    ordered, ordered_value = ev.p_step(THETA, 1.5, stride, ordered=True)
+    assert np.array_equal(ordered, responses[order]) and ordered_value == value
+
+
 @GRIDS
 @pytest.mark.parametrize("depth_sigma", [None, 0.5])
 def test_p_step_stride_is_the_coarse_references(grid, depth_sigma):
