@@ -307,16 +307,17 @@ def test_streamed_run_reports_its_real_time_factor_and_logs_windows_live(recordi
 
 
 def test_killed_streamed_run_leaves_no_temporary_files(recording_dir, tmp_path):
-    """SIGTERM mid-way (a job scheduler's kill): exit status 143, no hidden .raw files."""
+    """SIGTERM mid-way (a job scheduler's kill): exit status 143, no hidden .raw files. Small
+    windows, so that ten are still ahead (half a second) when the signal is sent."""
     out = tmp_path / "run"
-    args = (*STREAM, f"scene.path={recording_dir}", "window.events=1000", "tracking=none")
+    args = (*STREAM, f"scene.path={recording_dir}", "window.events=250", "tracking=none")
     command = [sys.executable, "-m", "spatialseg", *args, f"hydra.run.dir={out}"]
     with subprocess.Popen(
         command, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     ) as proc:
         assert proc.stdout is not None
         for line in proc.stdout:  # window 1 ended: window 0's rows are in the temporary files
-            if "][INFO] - window 1: 1000 events" in line:
+            if "][INFO] - window 1: 250 events" in line:
                 break
         assert (out / ".labels.npy.raw").is_file()
         proc.send_signal(signal.SIGTERM)
