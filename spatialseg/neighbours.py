@@ -3,8 +3,8 @@
 Events in space-time (pixels, and time scaled to pixels) fill a box about evenly at the
 scale of their neighbours, so a grid whose cells hold a few points each finds a point's
 neighbours in the cells around its own, and a ring of cells further out only while a
-nearer point could still lie there: 2.5-2.8x faster than scipy's k-d tree over 1,000,000
-events, with the same neighbours (docs/performance.md, session 52). The search runs on
+nearer point could still lie there: about 2.5x faster than scipy's k-d tree over
+1,000,000 events, with the same neighbours (docs/performance.md, session 52). The search runs on
 numba's threads. Ties in distance go to the lower index, so the answer is one function of
 the points, whatever the threads.
 
