@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from spatialseg.volume import counting_sort
+
 __all__ = ["nearest_neighbours"]
 
 #: Points per cell on average over the points' bounding box: fewer cells to visit against
@@ -44,7 +46,8 @@ def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
     extent = points.max(axis=0) - lo
     size, shape = _cells(extent, n)
     margin = ROUNDING * (float(np.abs(points).max()) + size)
-    order, starts = _sorted_by_cell(points, lo, size, shape)
+    # the points grouped by cell, each cell's in index order, and where each cell's run starts
+    order, starts = counting_sort(_cells_of(points, lo, size, shape), int(np.prod(shape)))
     return _search(points[order], k, lo, size, shape, order, starts, margin)
 
 
@@ -67,27 +70,15 @@ def _cell_of(value: float, lo: float, size: float, count: int) -> int:
 
 
 @njit(cache=True)
-def _sorted_by_cell(points, lo, size, shape):
-    """The points' indices grouped by cell (a counting sort, each cell's in index order)
-    and where each cell's group starts (``starts[c]:starts[c + 1]``)."""
-    n = points.shape[0]
-    cells = np.empty(n, np.int64)
-    for i in range(n):
+def _cells_of(points, lo, size, shape):
+    """Each point's cell, numbered in C order over the grid's ``shape``."""
+    cells = np.empty(points.shape[0], np.int64)
+    for i in range(points.shape[0]):
         cx = _cell_of(points[i, 0], lo[0], size, shape[0])
         cy = _cell_of(points[i, 1], lo[1], size, shape[1])
         cz = _cell_of(points[i, 2], lo[2], size, shape[2])
         cells[i] = (cx * shape[1] + cy) * shape[2] + cz
-    starts = np.zeros(shape[0] * shape[1] * shape[2] + 1, np.int64)
-    for i in range(n):
-        starts[cells[i] + 1] += 1
-    for c in range(len(starts) - 1):
-        starts[c + 1] += starts[c]
-    filled = starts[:-1].copy()
-    order = np.empty(n, np.int64)
-    for i in range(n):
-        order[filled[cells[i]]] = i
-        filled[cells[i]] += 1
-    return order, starts
+    return cells
 
 
 @njit(cache=True, inline="always")

@@ -351,22 +351,24 @@ def _stable_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
     The same order either way."""
     if n_keys > 32 * len(keys):
         return np.argsort(keys, kind="stable")
-    return _counting_order(keys.astype(np.int64, copy=False), n_keys)
+    return counting_sort(keys.astype(np.int64, copy=False), n_keys)[0]
 
 
 @njit(cache=True)
-def _counting_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
-    """The stable order of ``keys`` (in ``[0, n_keys)``) by one counting sort."""
+def counting_sort(keys: np.ndarray, n_keys: int) -> tuple[np.ndarray, np.ndarray]:
+    """The stable order of integer ``keys`` (in ``[0, n_keys)``) by one counting sort, and
+    where each key's run starts in it (``order[starts[key]:starts[key + 1]]``)."""
     starts = np.zeros(n_keys + 1, dtype=np.int64)
     for key in keys:
         starts[key + 1] += 1
     for key in range(n_keys):
         starts[key + 1] += starts[key]
+    filled = starts[:-1].copy()
     order = np.empty(keys.size, dtype=np.intp)
     for i in range(keys.size):
-        order[starts[keys[i]]] = i
-        starts[keys[i]] += 1
-    return order
+        order[filled[keys[i]]] = i
+        filled[keys[i]] += 1
+    return order, starts
 
 
 def _floats(values: np.ndarray) -> tuple[float, ...]:

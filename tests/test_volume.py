@@ -12,7 +12,7 @@ from scipy.ndimage import gaussian_filter
 from spatialseg import reference as ref
 from spatialseg.grid import VoxelGrid
 from spatialseg.objectives import Objective, make_objective, objective_names
-from spatialseg.volume import VolumeObjective, _stable_order
+from spatialseg.volume import VolumeObjective, _stable_order, counting_sort
 
 GRID = VoxelGrid(np.array([0.0, -0.5, 1.0]), np.array([0.1, 0.1, 0.25]), (14, 11, 6))
 #: A grid over pixels and inverse depth (1.5-2.5 m) of a 300 px focal length camera.
@@ -375,3 +375,10 @@ def test_stable_order_is_numpys_stable_argsort(n, n_keys):
     keys = np.random.default_rng(n).integers(0, n_keys, n)
     keys[: n // 2] = keys[0] if n else 0  # many ties
     np.testing.assert_array_equal(_stable_order(keys, n_keys), np.argsort(keys, kind="stable"))
+
+
+def test_counting_sort_says_where_each_keys_run_starts():
+    keys = np.random.default_rng(3).integers(0, 50, 1000)
+    order, starts = counting_sort(keys, 60)
+    np.testing.assert_array_equal(order, np.argsort(keys, kind="stable"))
+    np.testing.assert_array_equal(starts, np.searchsorted(np.sort(keys), np.arange(61)))
