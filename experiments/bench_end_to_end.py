@@ -58,6 +58,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -213,8 +214,9 @@ def create_store(uri: str) -> float:
 def pass_seconds(
     recording: Recording, settings: Settings, calls: int = PASS_CALLS
 ) -> tuple[float, int]:
-    """Time (s) of one fused objective+gradient pass over the recording's fitted events,
-    and their count: per window alone, as the pipeline builds its objective, the median of
+    """Time (s) of one fused objective+gradient pass over the recording's supported events
+    (every one, where the method fits a dense window on a sample), and their count: per
+    window alone, as the pipeline builds its objective, the median of
     ``calls`` calls at half the search box's upper corner after a warm-up, summed.
 
     Decision: one numba thread, as the child's (:data:`CHILD_ENV`), so the ratio of the
@@ -222,6 +224,7 @@ def pass_seconds(
     restored."""
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
+    settings = replace(settings, clustering=replace(settings.clustering, fit_per_voxel=None))
     total, events = 0.0, 0
     reach = settings.clustering.max_displacement
     cap = settings.clustering.max_depth_change

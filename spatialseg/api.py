@@ -60,6 +60,7 @@ _NULLABLE = frozenset(
     {
         "edpa.edge_ratio",
         "init.tiles.explained",
+        "clustering.fit_per_voxel",
         "clustering.step_events",
         "clustering.max_depth_change",
         "clustering.relabel_sigma",

@@ -24,6 +24,7 @@ from spatialseg.volume import VolumeObjective
 __all__ = [
     "ModelEvaluator",
     "Prepared",
+    "fit_sample",
     "fit_support",
     "off_edge_events",
     "p_step_settings",
@@ -50,7 +51,8 @@ class Prepared:
     None means the grid's. ``on_edge`` (M,) marks points whose depth came from an occlusion
     edge (:func:`spatialseg.edpa.occlusion_edges`); None: no such points. ``rest``: the
     points, times and mask (N,) of the events with depth left out of the fit (the
-    background filter's rejects), labelled from the fitted motions at the end; None: none.
+    background filter's rejects and, in a dense window, those its sample left out:
+    :func:`fit_sample`), labelled from the fitted motions at the end; None: none.
     """
 
     points: np.ndarray
@@ -69,16 +71,20 @@ class Prepared:
         return self.valid if self.rest is None else self.valid | self.rest[2]
 
 
-def prepare(window: Recording, settings: Settings) -> Prepared:
+def prepare(window: Recording, settings: Settings, *, seed: int = 0) -> Prepared:
     """Lift the window's events into the model's space and build the voxel grid around the
-    events the motions are fitted on (:func:`fit_support`);
-    the other events with depth are kept aside (``Prepared.rest``) and labelled at the end."""
+    events the motions are fitted on (:func:`fit_support`; in a dense window a sample of
+    them drawn with ``seed``, :func:`fit_sample`); the other events with depth are kept
+    aside (``Prepared.rest``) and labelled at the end."""
     vol, lifting = settings.volume, settings.edpa
     if len(window.events) == 0:
         raise ValueError(f"{window.name}: the window has no events; choose a longer window")
     support = fit_support(window, settings.denoise)
+    per_voxel = settings.clustering.fit_per_voxel
     if settings.model.name == "planar":
-        return planar_points(window, settings.model.voxel_scale, support)
+        prepared = planar_points(window, settings.model.voxel_scale, support)
+        sample = fit_sample(prepared.valid, prepared.grid, per_voxel, seed)
+        return prepared if sample is None else planar_points(window, prepared.grid, sample)
     lifted = edpa.lift(
         window,
         unknown_depth=lifting.unknown_depth,
@@ -88,15 +94,16 @@ def prepare(window: Recording, settings: Settings) -> Prepared:
     fit = support[lifted.valid]
     if not fit.any():
         fit[:] = True  # nothing supported: fit on every event with depth
-    points = lifted.points[fit]
-    grid = volume_grid(points, window.camera, settings)
+    grid = volume_grid(lifted.points[fit], window.camera, settings)
+    extent = _search_extent(lifted.points[fit], grid, vol.margin)
+    sample = fit_sample(fit, grid, per_voxel, seed)
+    fit = fit if sample is None else sample
     valid = lifted.valid.copy()
     valid[np.flatnonzero(valid)[~fit]] = False
     rest_valid = lifted.valid & ~valid
-    extent = _search_extent(points, grid, vol.margin)
     on_edge = lifted.on_edge[lifted.valid][fit]
     rest = (lifted.points[~fit], lifted.t[~fit], rest_valid)
-    return Prepared(points, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
+    return Prepared(lifted.points[fit], lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
 
 
 def fit_support(window: Recording, denoise: DenoiseSettings) -> np.ndarray:
@@ -116,20 +123,46 @@ def fit_support(window: Recording, denoise: DenoiseSettings) -> np.ndarray:
 
 
 def planar_points(
-    window: Recording, xy_scale: float, support: np.ndarray | None = None
+    window: Recording, scale: float | VoxelGrid, support: np.ndarray | None = None
 ) -> Prepared:
     """Image-plane embedding (Stoffregen et al. 2019): points (x, y, 0) in pixels, no depth;
-    the ``support``ed events (default all) are fitted, the others kept aside."""
+    the ``support``ed events (default all) are fitted, the others kept aside. ``scale``:
+    the voxel side in pixels, the grid then built around the fitted points; or the grid."""
     ev = window.events
     every = np.column_stack([ev.x, ev.y, np.zeros(len(ev))]).astype(np.float64)
     fit = np.ones(len(ev), dtype=bool) if support is None else support  # fit_support: never empty
     points = every[fit]
+    grid = scale if isinstance(scale, VoxelGrid) else _planar_grid(points, scale)
+    rest = (every[~fit], ev.t[~fit], ~fit)
+    return Prepared(points, ev.t[fit], fit.copy(), grid, 2, "px/s", rest=rest)
+
+
+def _planar_grid(points: np.ndarray, xy_scale: float) -> VoxelGrid:
+    """The planar model's grid: ``xy_scale``-pixel voxels over the points, two voxels beyond."""
     lo = points.min(axis=0) - np.array([2 * xy_scale, 2 * xy_scale, 0.0])
     hi = points.max(axis=0) + np.array([2 * xy_scale, 2 * xy_scale, 0.0])
     shape = (*(np.ceil((hi[:2] - lo[:2]) / xy_scale).astype(int) + 1), 1)
-    grid = VoxelGrid(origin=lo, voxel_size=np.array([xy_scale, xy_scale, 1.0]), shape=shape)
-    rest = (every[~fit], ev.t[~fit], ~fit)
-    return Prepared(points, ev.t[fit], fit.copy(), grid, 2, "px/s", rest=rest)
+    return VoxelGrid(origin=lo, voxel_size=np.array([xy_scale, xy_scale, 1.0]), shape=shape)
+
+
+def fit_sample(
+    fit: np.ndarray, grid: VoxelGrid, per_voxel: float | None, seed: int
+) -> np.ndarray | None:
+    """``fit`` (a mask of the events the motions are fitted on) with at most ``per_voxel``
+    events per voxel of ``grid`` kept, drawn uniformly with ``seed``; None when it holds
+    no more (or ``per_voxel`` is None). The others are labelled once at the end.
+
+    Decision: a motion's contrast peak is set by how its events line up in the grid, so
+    past a few events per voxel more of them sharpen nothing and every pass costs them;
+    the limit follows the grid (the sensor, the depth range, the voxel size), not a count
+    of events, which the yardstick showed too few for wide grids (docs/performance.md)."""
+    chosen = np.flatnonzero(fit)
+    if per_voxel is None or len(chosen) <= per_voxel * grid.n_voxels:
+        return None
+    limit = max(int(per_voxel * grid.n_voxels), 1)
+    kept = np.zeros_like(fit)
+    kept[np.random.default_rng(seed).choice(chosen, limit, replace=False)] = True
+    return kept
 
 
 def volume_grid(

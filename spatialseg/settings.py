@@ -276,6 +276,10 @@ class ClusteringSettings:
     #: Optimiser budget per cluster per theta-step (30 until session 41: half of it paid
     #: nothing on the yardstick's dev seeds; docs/method.md, "theta-step budget").
     evals_per_step: int = 15
+    #: Fit the motions (starts, loop, refit) on a random sample of at most this many
+    #: events per voxel of the window's grid and label the others once at the end; null:
+    #: fit on every event (docs/method.md, "The fit on a sample").
+    fit_per_voxel: float | None = 2.0
     #: Theta-step on a random sample of at most this many events (P-step on all); null: all.
     step_events: int | None = 20000
     #: Events on an occlusion edge in the theta-step too; false: the P-step labels them,
@@ -329,6 +333,7 @@ class ClusteringSettings:
                 f"clustering.label_tol must be a number in [0, 1) or null, got {self.label_tol!r}"
             )
         integer_setting(self.evals_per_step, "clustering.evals_per_step", 1)
+        optional_positive(self.fit_per_voxel, "clustering.fit_per_voxel")
         integer_setting(self.step_events, "clustering.step_events", 1, optional=True)
         _in_range(self.max_displacement, "clustering.max_displacement", 0, 1, open_low=True)
         optional_positive(self.max_depth_change, "clustering.max_depth_change")

@@ -140,7 +140,7 @@ def segment_window(
     alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    prepared = prepare(window, settings)
+    prepared = prepare(window, settings, seed=seed)
     check_events_per_cluster(prepared.points.shape[0], k, window.name)
     t_ref = reference_time(prepared.t, settings.volume.t_ref)
     timings["prepare"] = time.perf_counter() - start

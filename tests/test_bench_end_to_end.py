@@ -83,7 +83,8 @@ def test_run_overrides_name_the_optimiser_and_its_extras() -> None:
 
 def test_pass_time_is_positive_and_counts_each_event_once() -> None:
     """On a tiny two-window recording the pass takes time, covers at most every event once
-    (each window alone, not with its neighbours) and leaves numba's threads as they were."""
+    (each window alone, not with its neighbours), every supported one even where the method
+    fits a sample, and leaves numba's threads as they were."""
     recording = spatialseg.simulate("interior", seed=0, window_events=1500, windows=2)
     threads = numba.get_num_threads()
     settings = settings_from(compose_config("n_clusters=2"))
@@ -91,6 +92,9 @@ def test_pass_time_is_positive_and_counts_each_event_once() -> None:
     assert 0 < seconds < 1
     assert len(recording.events) // 2 < events <= len(recording.events)
     assert numba.get_num_threads() == threads
+    # a fit on a sample (clustering.fit_per_voxel) leaves the reference pass over every event
+    sampled = settings_from(compose_config("n_clusters=2", "clustering.fit_per_voxel=0.01"))
+    assert bench.pass_seconds(recording, sampled, calls=1)[1] == events
 
 
 def test_stage_seconds_sum_every_stage_over_the_windows() -> None:

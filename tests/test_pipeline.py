@@ -16,6 +16,7 @@ from spatialseg.config import conf_dir
 from spatialseg.metrics import segmentation_metrics
 from spatialseg.pipeline import SegmentationResult, segment_recording
 from spatialseg.points import (
+    fit_sample,
     prepare,
     reference_time,
     search_bounds,
@@ -225,6 +226,57 @@ def test_a_negative_context_is_refused(interior):
     bad = {**cfg, "window": {**cfg["window"], "context": -1}}
     with pytest.raises(ValueError, match=r"window\.context must be an integer >= 0"):
         segment_recording(rec, bad, optimizers.create("ssa_ga"), seed=0)
+
+
+def _with_fit_per_voxel(settings: Settings, per_voxel: float | None) -> Settings:
+    """``settings`` with ``clustering.fit_per_voxel`` set to ``per_voxel``."""
+    return replace(settings, clustering=replace(settings.clustering, fit_per_voxel=per_voxel))
+
+
+@pytest.mark.parametrize("model", ["spatial", "planar"])
+def test_a_dense_window_is_fitted_on_a_seeded_sample_of_its_grid_and_every_event_labelled(
+    interior, model
+):
+    """clustering.fit_per_voxel: a window with more supported events per voxel than that
+    is fitted on a seeded uniform sample of that many per voxel of the grid every event
+    would give; the events left out are labelled at the end, so the same events get a
+    label, and the segmentation stays right."""
+    cfg, rec = interior
+    _, window = next(rec.windows())
+    settings = settings_from({**cfg, "model": {"name": model}})
+    full = prepare(window, _with_fit_per_voxel(settings, None))
+    per_voxel = 0.4 * len(full.points) / full.grid.n_voxels
+    sparse = _with_fit_per_voxel(settings, per_voxel)
+    sampled = prepare(window, sparse, seed=3)
+    assert len(sampled.points) == int(per_voxel * full.grid.n_voxels)
+    for part in ("origin", "voxel_size", "shape"):  # the grid of every fitted event
+        np.testing.assert_array_equal(getattr(sampled.grid, part), getattr(full.grid, part))
+    if model == "spatial":
+        np.testing.assert_array_equal(sampled.search_extent, full.search_extent)
+    np.testing.assert_array_equal(sampled.labelled, full.labelled)
+    assert not np.any(sampled.valid & ~full.valid)  # the sample is of the fitted events
+    again, other = prepare(window, sparse, seed=3), prepare(window, sparse, seed=4)
+    np.testing.assert_array_equal(again.valid, sampled.valid)
+    assert np.any(other.valid != sampled.valid)
+    res = segment_window(window, sparse, optimizers.create("ssa_ga"), seed=0)
+    np.testing.assert_array_equal(res.labels >= 0, full.labelled)
+    if model == "spatial":  # the planar model on 1,300 of these 3,400 events fails (0.64)
+        accuracy = segmentation_metrics(res.labels, window.ground_truth.labels)["accuracy"]
+        assert accuracy > 0.95
+
+
+def test_a_fit_sample_is_drawn_only_past_its_limit():
+    """fit_sample: None (every event fitted) at or under ``per_voxel`` events per voxel, or
+    with no limit; past it exactly the limit's count, all from the fitted events."""
+    from spatialseg.grid import VoxelGrid
+
+    grid = VoxelGrid(origin=np.zeros(3), voxel_size=np.ones(3), shape=(5, 4, 1))
+    fit = np.zeros(100, dtype=bool)
+    fit[::2] = True  # 50 events over 20 voxels
+    assert fit_sample(fit, grid, None, 0) is None
+    assert fit_sample(fit, grid, 2.5, 0) is None
+    kept = fit_sample(fit, grid, 1.0, 0)
+    assert kept is not None and kept.sum() == 20 and not np.any(kept & ~fit)
 
 
 def test_every_event_with_depth_is_fitted_without_the_background_filter():

@@ -47,6 +47,10 @@ def test_app_sections_are_not_the_methods():
         ({"clustering": {"tol": "x"}}, "clustering.tol must be a number, got 'x'"),
         ({"clustering": {"tol": -1}}, "clustering.tol must be a number >= 0, got -1"),
         ({"clustering": {"label_tol": 1}}, "clustering.label_tol must be a number in [0, 1) or"),
+        (
+            {"clustering": {"fit_per_voxel": 0}},
+            "clustering.fit_per_voxel must be a positive number or null, got 0",
+        ),
         ({"clustering": {"fooo": 1}}, "clustering.fooo is not a setting; valid clustering: "),
         ({"nonsense": 1, "window": {"events": 0}}, "window.events must be an integer >= 1"),
         ({"window": {"parallel": "gpu"}}, "window.parallel must be one of 'none', 'processes'"),
