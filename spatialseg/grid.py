@@ -109,6 +109,17 @@ class VoxelGrid:
         """Continuous voxel coordinates of ``points`` (N x 3)."""
         return (self.coordinates(points) - self.origin) / self.voxel_size
 
+    def occupied(self, points: np.ndarray) -> int:
+        """How many voxels hold at least one of ``points`` (N x 3, each in the voxel whose
+        centre is nearest; points outside the grid in its border voxels)."""
+        if not len(points):
+            return 0
+        index = np.rint(self.continuous_index(points))
+        inside = np.clip(np.nan_to_num(index), 0, np.array(self.shape) - 1).astype(np.int64)
+        marks = np.zeros(self.n_voxels, dtype=bool)
+        marks[np.ravel_multi_index(tuple(inside.T), self.shape)] = True
+        return int(np.count_nonzero(marks))
+
 
 def grid_around(
     points: np.ndarray,

@@ -74,8 +74,8 @@ class Prepared:
 def prepare(window: Recording, settings: Settings, *, seed: int = 0) -> Prepared:
     """Lift the window's events into the model's space and build the voxel grid around the
     events the motions are fitted on (:func:`fit_support`; in a dense window a sample of
-    them drawn with ``seed``, :func:`fit_sample`); the other events with depth are kept
-    aside (``Prepared.rest``) and labelled at the end."""
+    them drawn with ``seed``, :func:`fit_sample`, on the same grid); the other events with
+    depth are kept aside (``Prepared.rest``) and labelled at the end."""
     vol, lifting = settings.volume, settings.edpa
     if len(window.events) == 0:
         raise ValueError(f"{window.name}: the window has no events; choose a longer window")
@@ -83,7 +83,7 @@ def prepare(window: Recording, settings: Settings, *, seed: int = 0) -> Prepared
     per_voxel = settings.clustering.fit_per_voxel
     if settings.model.name == "planar":
         prepared = planar_points(window, settings.model.voxel_scale, support)
-        sample = fit_sample(prepared.valid, prepared.grid, per_voxel, seed)
+        sample = fit_sample(prepared.valid, prepared.points, prepared.grid, per_voxel, seed)
         return prepared if sample is None else planar_points(window, prepared.grid, sample)
     lifted = edpa.lift(
         window,
@@ -94,16 +94,18 @@ def prepare(window: Recording, settings: Settings, *, seed: int = 0) -> Prepared
     fit = support[lifted.valid]
     if not fit.any():
         fit[:] = True  # nothing supported: fit on every event with depth
-    grid = volume_grid(lifted.points[fit], window.camera, settings)
-    extent = _search_extent(lifted.points[fit], grid, vol.margin)
-    sample = fit_sample(fit, grid, per_voxel, seed)
-    fit = fit if sample is None else sample
+    fitted = lifted.points[fit]
+    grid = volume_grid(fitted, window.camera, settings)
+    extent = _search_extent(fitted, grid, vol.margin)
+    sample = fit_sample(fit, fitted, grid, per_voxel, seed)
+    if sample is not None:
+        fit, fitted = sample, lifted.points[sample]
     valid = lifted.valid.copy()
     valid[np.flatnonzero(valid)[~fit]] = False
     rest_valid = lifted.valid & ~valid
     on_edge = lifted.on_edge[lifted.valid][fit]
     rest = (lifted.points[~fit], lifted.t[~fit], rest_valid)
-    return Prepared(lifted.points[fit], lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
+    return Prepared(fitted, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
 
 
 def fit_support(window: Recording, denoise: DenoiseSettings) -> np.ndarray:
@@ -146,22 +148,26 @@ def _planar_grid(points: np.ndarray, xy_scale: float) -> VoxelGrid:
 
 
 def fit_sample(
-    fit: np.ndarray, grid: VoxelGrid, per_voxel: float | None, seed: int
+    fit: np.ndarray, points: np.ndarray, grid: VoxelGrid, per_voxel: float | None, seed: int
 ) -> np.ndarray | None:
-    """``fit`` (a mask of the events the motions are fitted on) with at most ``per_voxel``
-    events per voxel of ``grid`` kept, drawn uniformly with ``seed``; None when it holds
-    no more (or ``per_voxel`` is None). The others are labelled once at the end.
+    """``fit`` (a mask of the events the motions are fitted on, at ``points``, K x 3 for
+    its K events) with at most ``per_voxel`` events per voxel those points occupy in
+    ``grid`` (:meth:`VoxelGrid.occupied`, unwarped) kept, drawn uniformly with ``seed``;
+    None when it holds no more (or ``per_voxel`` is None). The others are labelled once
+    at the end.
 
-    Decision: a motion's contrast peak is set by how its events line up in the grid, so
-    past a few events per voxel more of them sharpen nothing and every pass costs them;
-    the limit follows the grid (the sensor, the depth range, the voxel size), not a count
-    of events, which the yardstick showed too few for wide grids (docs/performance.md)."""
-    chosen = np.flatnonzero(fit)
-    if per_voxel is None or len(chosen) <= per_voxel * grid.n_voxels:
+    Decision: a motion's contrast peak is set by how its events line up in the voxels they
+    fall in, so past some dozens of events per such voxel more of them sharpen little while
+    every pass costs them all. The voxels the events occupy, not the grid's, measure it:
+    a grid is mostly empty (its depth bins span the scene's depth, an object one or two),
+    so events per voxel of the grid would call a deep scene sparse at any event count."""
+    if per_voxel is None or len(points) <= per_voxel:
         return None
-    limit = max(int(per_voxel * grid.n_voxels), 1)
+    limit = int(per_voxel * grid.occupied(points))
+    if len(points) <= limit:
+        return None
     kept = np.zeros_like(fit)
-    kept[np.random.default_rng(seed).choice(chosen, limit, replace=False)] = True
+    kept[np.random.default_rng(seed).choice(np.flatnonzero(fit), limit, replace=False)] = True
     return kept
 
 

@@ -277,9 +277,9 @@ class ClusteringSettings:
     #: nothing on the yardstick's dev seeds; docs/method.md, "theta-step budget").
     evals_per_step: int = 15
     #: Fit the motions (starts, loop, refit) on a random sample of at most this many
-    #: events per voxel of the window's grid and label the others once at the end; null:
-    #: fit on every event (docs/method.md, "The fit on a sample").
-    fit_per_voxel: float | None = 2.0
+    #: events per voxel the unwarped events occupy in the grid, and label the others once
+    #: at the end; null: fit on every event (docs/method.md, "The fit on a sample").
+    fit_per_voxel: float | None = 50.0
     #: Theta-step on a random sample of at most this many events (P-step on all); null: all.
     step_events: int | None = 20000
     #: Events on an occlusion edge in the theta-step too; false: the P-step labels them,

@@ -45,3 +45,16 @@ def test_coarsened_grid_covers_the_fine_one_in_x_and_y(shape):
     assert grid.coarsened(1).shape == grid.shape
     with pytest.raises(ValueError, match="grid stride must be an integer >= 1"):
         grid.coarsened(0)
+
+
+def test_occupied_counts_the_voxels_whose_centre_is_nearest_to_some_point():
+    """Points go to the voxel whose centre is nearest (centres at integer coordinates), two
+    points in one voxel count once, a point beyond the grid counts in its border voxel, and
+    a projective grid counts in (u, v, 1/Z)."""
+    grid = VoxelGrid(origin=np.zeros(3), voxel_size=np.full(3, 2.0), shape=(4, 3, 2))
+    points = np.array([[0.9, 0.0, 0.0], [-0.9, 0.0, 0.0], [1.1, 0.0, 0.0], [50.0, 50.0, 0.0]])
+    assert grid.occupied(points) == 3  # (0,0,0) twice, (1,0,0), (3,2,0)
+    assert grid.occupied(np.zeros((0, 3))) == 0
+    image = VoxelGrid(np.array([0.0, 0.0, 0.0]), np.ones(3), (10, 10, 3), (2.0, 2.0, 0.0, 0.0))
+    points = np.array([[1.0, 1.0, 1.0], [1.1, 1.1, 1.0], [1.0, 1.0, 0.5]])  # u = 2, 2.2, 4
+    assert image.occupied(points) == 2

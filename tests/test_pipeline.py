@@ -234,21 +234,20 @@ def _with_fit_per_voxel(settings: Settings, per_voxel: float | None) -> Settings
 
 
 @pytest.mark.parametrize("model", ["spatial", "planar"])
-def test_a_dense_window_is_fitted_on_a_seeded_sample_of_its_grid_and_every_event_labelled(
-    interior, model
-):
-    """clustering.fit_per_voxel: a window with more supported events per voxel than that
-    is fitted on a seeded uniform sample of that many per voxel of the grid every event
-    would give; the events left out are labelled at the end, so the same events get a
-    label, and the segmentation stays right."""
+def test_a_dense_window_is_fitted_on_a_seeded_sample_and_every_event_labelled(interior, model):
+    """clustering.fit_per_voxel: a window with more supported events per voxel they occupy
+    than that is fitted on a seeded uniform sample of that many per occupied voxel, on the
+    grid every event would give; the events left out are labelled at the end, so the same
+    events get a label, and the segmentation stays right."""
     cfg, rec = interior
     _, window = next(rec.windows())
     settings = settings_from({**cfg, "model": {"name": model}})
     full = prepare(window, _with_fit_per_voxel(settings, None))
-    per_voxel = 0.4 * len(full.points) / full.grid.n_voxels
+    assert prepare(window, settings).points.shape == full.points.shape  # under the default
+    per_voxel = 0.4 * len(full.points) / full.grid.occupied(full.points)
     sparse = _with_fit_per_voxel(settings, per_voxel)
     sampled = prepare(window, sparse, seed=3)
-    assert len(sampled.points) == int(per_voxel * full.grid.n_voxels)
+    assert len(sampled.points) == int(per_voxel * full.grid.occupied(full.points))
     for part in ("origin", "voxel_size", "shape"):  # the grid of every fitted event
         np.testing.assert_array_equal(getattr(sampled.grid, part), getattr(full.grid, part))
     if model == "spatial":
@@ -265,17 +264,20 @@ def test_a_dense_window_is_fitted_on_a_seeded_sample_of_its_grid_and_every_event
         assert accuracy > 0.95
 
 
-def test_a_fit_sample_is_drawn_only_past_its_limit():
-    """fit_sample: None (every event fitted) at or under ``per_voxel`` events per voxel, or
-    with no limit; past it exactly the limit's count, all from the fitted events."""
+def test_a_fit_sample_is_drawn_only_past_its_limit_of_events_per_occupied_voxel():
+    """fit_sample: None (every event fitted) at or under ``per_voxel`` events per voxel the
+    points occupy, or with no limit; past it exactly the limit's count, all from the fitted
+    events. Empty voxels of the grid do not count."""
     from spatialseg.grid import VoxelGrid
 
-    grid = VoxelGrid(origin=np.zeros(3), voxel_size=np.ones(3), shape=(5, 4, 1))
+    grid = VoxelGrid(origin=np.zeros(3), voxel_size=np.ones(3), shape=(50, 40, 10))
     fit = np.zeros(100, dtype=bool)
-    fit[::2] = True  # 50 events over 20 voxels
-    assert fit_sample(fit, grid, None, 0) is None
-    assert fit_sample(fit, grid, 2.5, 0) is None
-    kept = fit_sample(fit, grid, 1.0, 0)
+    fit[::2] = True  # 50 events in 5 voxels of the grid's 20,000
+    points = np.repeat(np.arange(5.0)[:, None] * [1.0, 2.0, 1.0], 10, axis=0) + 0.2
+    assert grid.occupied(points) == 5
+    assert fit_sample(fit, points, grid, None, 0) is None
+    assert fit_sample(fit, points, grid, 10.0, 0) is None
+    kept = fit_sample(fit, points, grid, 4.0, 0)
     assert kept is not None and kept.sum() == 20 and not np.any(kept & ~fit)
 
 
