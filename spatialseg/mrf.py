@@ -17,7 +17,7 @@ from numba import njit, prange
 
 from spatialseg.neighbours import nearest_neighbours
 
-__all__ = ["NEIGHBOURS", "neighbour_pairs", "potts_labels", "space_time"]
+__all__ = ["NEIGHBOURS", "conditional_labels", "neighbour_pairs", "potts_labels", "space_time"]
 
 #: Each event is joined to this many nearest events in space-time (pairs made symmetric).
 NEIGHBOURS = 8
@@ -161,3 +161,31 @@ def _pair_terms(
             cut[m] = first_kept + second_kept - both_kept  # > 0: the Potts term is a metric
             m += 1
     return into_first, into_second, a[:m], b[:m], cut[:m]
+
+
+def conditional_labels(
+    probabilities: np.ndarray,
+    points: np.ndarray,
+    fixed_points: np.ndarray,
+    fixed_labels: np.ndarray,
+    weight: float,
+    k: int = NEIGHBOURS,
+) -> np.ndarray:
+    """The labels (Q,) of the events at ``points`` (Q x 3, :func:`space_time`) with
+    memberships ``probabilities`` (Q x K) that minimise the Potts energy with the labels
+    of their ``k`` nearest events of ``fixed_points`` (M x 3, labels ``fixed_labels``)
+    held: each event's own cost plus ``weight`` per neighbour of another label.
+
+    Decision: the events a dense window's motions were not fitted on
+    (:func:`spatialseg.points.fit_sample`) are most of its events, and each is told by
+    its neighbours rather than telling them; with the fitted events' labels held their
+    energy splits into one independent choice per event, exact and linear in their
+    number, where one cut over every event of a dense window was its longest stage."""
+    p = np.asarray(probabilities, dtype=np.float64)
+    labels = p.argmax(axis=1) if p.size else np.zeros(len(p), dtype=np.int64)
+    if len(p) == 0 or len(fixed_points) == 0 or weight == 0 or p.shape[1] < 2:
+        return labels
+    k = min(k, len(fixed_points))
+    neighbours = np.asarray(fixed_labels)[nearest_neighbours(fixed_points, k, points)]
+    disagree = np.stack([(neighbours != label).sum(axis=1) for label in range(p.shape[1])], 1)
+    return (-np.log(np.maximum(p, FLOOR)) + weight * disagree).argmin(axis=1)

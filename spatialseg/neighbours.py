@@ -32,23 +32,41 @@ MAX_CELLS_PER_POINT = 2
 ROUNDING = 1e-9
 
 
-def nearest_neighbours(points: np.ndarray, k: int) -> np.ndarray:
+def nearest_neighbours(points: np.ndarray, k: int, queries: np.ndarray | None = None) -> np.ndarray:
     """The indices (N x k, nearest first) of each point's ``k`` nearest other points in
     Euclidean distance, ties to the lower index; a duplicate point is a neighbour at
-    distance 0, the point itself never. ``points`` is N x 3 and finite, ``1 <= k < N``."""
-    points = np.ascontiguousarray(points, dtype=np.float64)
+    distance 0, the point itself never. ``points`` is N x 3 and finite, ``1 <= k < N``.
+    With ``queries`` (Q x 3, finite): each query's ``k`` nearest points (Q x k, ``k <= N``),
+    none excluded."""
+    points = _finite(points, "points")
     n = len(points)
-    if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
-        raise ValueError("points must be a finite N x 3 array")
-    if not 1 <= k < n:
-        raise ValueError(f"k must be at least 1 and below the {n} points, got {k}")
+    top = n - 1 if queries is None else n
+    if not 1 <= k <= top:
+        raise ValueError(f"k must be at least 1 and at most {top} (of {n} points), got {k}")
     lo = points.min(axis=0)
     extent = points.max(axis=0) - lo
     size, shape = _cells(extent, n)
-    margin = ROUNDING * (float(np.abs(points).max()) + size)
     # the points grouped by cell, each cell's in index order, and where each cell's run starts
     order, starts = counting_sort(_cells_of(points, lo, size, shape), int(np.prod(shape)))
-    return _search(points[order], k, lo, size, shape, order, starts, margin)
+    grouped = points[order]
+    if queries is None:
+        margin = ROUNDING * (float(np.abs(points).max()) + size)
+        found = np.empty((n, k), np.int64)
+        found[order] = _search(grouped, order, starts, grouped, order, k, lo, size, shape, margin)
+        return found
+    asked = _finite(queries, "queries")
+    reach = max(float(np.abs(points).max()), float(np.abs(asked).max(initial=0.0)))
+    margin = ROUNDING * (reach + size)
+    own = np.full(len(asked), -1, np.int64)  # a query is none of the points
+    return _search(grouped, order, starts, asked, own, k, lo, size, shape, margin)
+
+
+def _finite(points: np.ndarray, name: str) -> np.ndarray:
+    """``points`` as a C-ordered float64 N x 3 array, refused unless finite."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or not np.all(np.isfinite(points)):
+        raise ValueError(f"{name} must be a finite N x 3 array")
+    return points
 
 
 def _cells(extent: np.ndarray, n: int) -> tuple[float, np.ndarray]:
@@ -65,8 +83,8 @@ def _cells(extent: np.ndarray, n: int) -> tuple[float, np.ndarray]:
 
 @njit(cache=True, inline="always")
 def _cell_of(value: float, lo: float, size: float, count: int) -> int:
-    """The cell (0 .. count - 1) of one coordinate."""
-    return min(int((value - lo) / size), count - 1)
+    """The cell (0 .. count - 1) of one coordinate; a query beyond the grid, its edge cell."""
+    return max(min(int(np.floor((value - lo) / size)), count - 1), 0)
 
 
 @njit(cache=True)
@@ -122,16 +140,15 @@ def _reach(p, lo, size, shape, home, r) -> float:
 
 
 @njit(cache=True, parallel=True)
-def _search(grouped, k, lo, size, shape, order, starts, margin):
-    """Each point's k nearest others (``grouped``: the points in ``order``, so a cell's
-    points lie together in memory): the rings of cells around its own, ring by ring, until
-    the k-th nearest found is nearer than anything beyond the ring; a cell farther than the
-    k-th nearest is skipped."""
-    n = grouped.shape[0]
-    found = np.empty((n, k), np.int64)
-    for t in prange(n):
-        i = order[t]
-        p = grouped[t]
+def _search(grouped, order, starts, queries, own, k, lo, size, shape, margin):
+    """Each query's k nearest points other than point ``own`` of it (-1: none), Q x k
+    (``grouped``: the points in ``order``, so a cell's points lie together in memory): the
+    rings of cells around the query's own, ring by ring, until the k-th nearest found is
+    nearer than anything beyond the ring; a cell farther than the k-th nearest is skipped."""
+    found = np.empty((queries.shape[0], k), np.int64)
+    for t in prange(queries.shape[0]):
+        i = own[t]
+        p = queries[t]
         home = np.empty(3, np.int64)
         for a in range(3):
             home[a] = _cell_of(p[a], lo[a], size, shape[a])
@@ -167,5 +184,5 @@ def _search(grouped, k, lo, size, shape, order, starts, margin):
             if reach == np.inf or (count == k and reach > 0 and best_d[k - 1] < reach * reach):
                 break
             r += 1
-        found[i] = best_i
+        found[t] = best_i
     return found

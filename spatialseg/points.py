@@ -8,7 +8,7 @@ the warp's reference time and :class:`ModelEvaluator`, one cluster's contrast of
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -53,6 +53,7 @@ class Prepared:
     points, times and mask (N,) of the events with depth left out of the fit (the
     background filter's rejects and, in a dense window, those its sample left out:
     :func:`fit_sample`), labelled from the fitted motions at the end; None: none.
+    ``unsampled`` (N,) marks the latter; None: no sample was drawn.
     """
 
     points: np.ndarray
@@ -64,6 +65,7 @@ class Prepared:
     search_extent: np.ndarray | None = None
     on_edge: np.ndarray | None = None
     rest: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    unsampled: np.ndarray | None = None
 
     @property
     def labelled(self) -> np.ndarray:
@@ -84,7 +86,10 @@ def prepare(window: Recording, settings: Settings, *, seed: int = 0) -> Prepared
     if settings.model.name == "planar":
         prepared = planar_points(window, settings.model.voxel_scale, support)
         sample = fit_sample(prepared.valid, prepared.points, prepared.grid, per_voxel, seed)
-        return prepared if sample is None else planar_points(window, prepared.grid, sample)
+        if sample is None:
+            return prepared
+        unsampled = prepared.valid & ~sample
+        return replace(planar_points(window, prepared.grid, sample), unsampled=unsampled)
     lifted = edpa.lift(
         window,
         unknown_depth=lifting.unknown_depth,
@@ -98,14 +103,17 @@ def prepare(window: Recording, settings: Settings, *, seed: int = 0) -> Prepared
     grid = volume_grid(fitted, window.camera, settings)
     extent = _search_extent(fitted, grid, vol.margin)
     sample = fit_sample(fit, fitted, grid, per_voxel, seed)
+    unsampled = None
     if sample is not None:
+        unsampled = np.zeros_like(lifted.valid)
+        unsampled[np.flatnonzero(lifted.valid)[fit & ~sample]] = True
         fit, fitted = sample, lifted.points[sample]
     valid = lifted.valid.copy()
     valid[np.flatnonzero(valid)[~fit]] = False
     rest_valid = lifted.valid & ~valid
     on_edge = lifted.on_edge[lifted.valid][fit]
     rest = (lifted.points[~fit], lifted.t[~fit], rest_valid)
-    return Prepared(fitted, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest)
+    return Prepared(fitted, lifted.t[fit], valid, grid, 3, "m/s", extent, on_edge, rest, unsampled)
 
 
 def fit_support(window: Recording, denoise: DenoiseSettings) -> np.ndarray:

@@ -612,9 +612,11 @@ def smoothed_labels(
 ) -> np.ndarray:
     """``labels`` (N,) with every labelled event's label (of the events ``inner`` only, when
     given) Potts-smoothed (:mod:`spatialseg.mrf`, weight ``clustering.smoothness``, from its
-    memberships ``probabilities``, N x K); neighbours in space-time, the time scaled by the
-    events' image speed (:func:`image_speed`; at least a pixel over the window). Unlabelled
-    events stay -1."""
+    memberships ``probabilities``, N x K): jointly, except for the events a dense window's
+    fit left out (``prepared.unsampled``), each labelled given the others'
+    (:func:`~spatialseg.mrf.conditional_labels`); neighbours in space-time, the time scaled
+    by the events' image speed (:func:`image_speed`; at least a pixel over the window).
+    Unlabelled events stay -1."""
     index = np.flatnonzero(labels >= 0)
     if inner is not None:
         index = np.intersect1d(index, inner, assume_unique=True)
@@ -625,9 +627,18 @@ def smoothed_labels(
     span = max(float(t.max() - t.min()), 1e-9)
     speed = max(image_speed(prepared, result.thetas, result.probabilities, window.camera), 1 / span)
     xy = np.column_stack([ev.x[index], ev.y[index]])
-    first, second = mrf.neighbour_pairs(mrf.space_time(xy, t, speed))
+    where = mrf.space_time(xy, t, speed)
+    joint = np.ones(len(index), dtype=bool)
+    if prepared.unsampled is not None:
+        joint = ~prepared.unsampled[index]
+        joint |= np.count_nonzero(joint) < 2  # too few fitted events to hold: all jointly
+    core, others, weight = index[joint], index[~joint], clustering.smoothness
+    first, second = mrf.neighbour_pairs(where[joint])
     smoothed = labels.copy()
-    smoothed[index] = mrf.potts_labels(probabilities[index], first, second, clustering.smoothness)
+    smoothed[core] = mrf.potts_labels(probabilities[core], first, second, weight)
+    smoothed[others] = mrf.conditional_labels(
+        probabilities[others], where[~joint], where[joint], smoothed[core], weight
+    )
     return smoothed
 
 

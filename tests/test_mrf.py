@@ -13,7 +13,14 @@ import pytest
 import optimizers
 from spatialseg.grid import VoxelGrid
 from spatialseg.metrics import segmentation_metrics
-from spatialseg.mrf import FLOOR, _expand, neighbour_pairs, potts_labels, space_time
+from spatialseg.mrf import (
+    FLOOR,
+    _expand,
+    conditional_labels,
+    neighbour_pairs,
+    potts_labels,
+    space_time,
+)
 from spatialseg.points import Prepared
 from spatialseg.recording import Camera
 from spatialseg.scenes import load_scene
@@ -112,6 +119,31 @@ def test_an_isolated_weak_label_is_outvoted_and_a_confident_one_kept():
     assert p.argmax(axis=1)[45] == 1 and labels[45] == 0
     assert labels[54] == 1 and np.all(np.delete(labels, 54) == 0)
     assert np.array_equal(potts_labels(p, first, second, 0.0), p.argmax(axis=1))
+
+
+def test_an_event_labelled_given_held_neighbours_takes_the_cheapest_label():
+    """conditional_labels: each event's label minimises its own cost plus the weight per
+    held neighbour of another label (checked against every label's energy); a weak
+    membership follows its neighbours, a confident one is kept, weight 0 is the argmax."""
+    rng = np.random.default_rng(2)
+    fixed = rng.uniform(0, 20, (400, 3))
+    fixed_labels = (fixed[:, 0] > 10).astype(np.int64)  # two halves
+    points = np.array([[5.0, 10.0, 10.0], [5.0, 10.0, 10.0], [15.0, 10.0, 10.0]])
+    p = np.array([[0.4, 0.6], [0.001, 0.999], [0.6, 0.4]])
+    # weight 0.5: eight neighbours of the other label cost 4, a membership of 0.001 6.9
+    labels = conditional_labels(p, points, fixed, fixed_labels, 0.5)
+    assert labels.tolist() == [0, 1, 1]
+    assert conditional_labels(p, points, fixed, fixed_labels, 0.0).tolist() == [1, 1, 0]
+    queries = rng.uniform(0, 20, (50, 3))
+    q = rng.dirichlet([1.0, 1.0, 1.0], 50)
+    held = rng.integers(0, 3, 400)
+    found = conditional_labels(q, queries, fixed, held, 0.7)
+    distance = ((queries[:, None] - fixed[None]) ** 2).sum(axis=2)
+    near = held[np.argsort(distance, axis=1, kind="stable")[:, :8]]
+    energy = -np.log(np.maximum(q, FLOOR)) + 0.7 * np.stack(
+        [(near != label).sum(axis=1) for label in range(3)], axis=1
+    )
+    np.testing.assert_array_equal(found, energy.argmin(axis=1))
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -11,11 +11,13 @@ from scipy.spatial import cKDTree
 from spatialseg.neighbours import nearest_neighbours
 
 
-def _brute_force(points: np.ndarray, k: int) -> np.ndarray:
-    """Each point's k nearest others by squared distance (summed over x, y, z in order),
-    ties to the lower index."""
-    distance = ((points[:, None] - points[None]) ** 2).sum(axis=2)
-    np.fill_diagonal(distance, np.inf)
+def _brute_force(points: np.ndarray, k: int, queries: np.ndarray | None = None) -> np.ndarray:
+    """Each point's k nearest others (or each query's k nearest points) by squared distance
+    (summed over x, y, z in order), ties to the lower index."""
+    asked = points if queries is None else queries
+    distance = ((asked[:, None] - points[None]) ** 2).sum(axis=2)
+    if queries is None:
+        np.fill_diagonal(distance, np.inf)
     return np.argsort(distance, axis=1, kind="stable")[:, :k]
 
 
@@ -76,10 +78,35 @@ def test_the_answer_does_not_depend_on_the_threads():
     [
         (np.zeros((5, 2)), 2, "N x 3"),
         (np.array([[0.0, 0.0, np.nan], [1.0, 1.0, 1.0]]), 1, "finite"),
-        (np.zeros((5, 3)), 5, "below the 5 points"),
+        (np.zeros((5, 3)), 5, "at most 4 \\(of 5 points\\)"),
         (np.zeros((5, 3)), 0, "at least 1"),
     ],
 )
 def test_bad_input_is_refused(points, k, match):
     with pytest.raises(ValueError, match=match):
         nearest_neighbours(points, k)
+
+
+@pytest.mark.parametrize("layout", ["inside", "beyond", "duplicates"])
+def test_every_querys_nearest_points_in_order(layout):
+    """With queries: each query's nearest points, a point where a query lies at distance 0
+    and none left out; queries beyond the points' box (on every side) are searched from the
+    grid's edge cells."""
+    rng = np.random.default_rng(5)
+    points = _clustered(rng, 600)
+    queries = {
+        "inside": lambda: _clustered(rng, 400),
+        "beyond": lambda: rng.uniform(-200, 500, (400, 3)),
+        "duplicates": lambda: points[rng.integers(0, 600, 400)],
+    }[layout]()
+    found = nearest_neighbours(points, 8, queries)
+    assert found.shape == (400, 8)
+    np.testing.assert_array_equal(found, _brute_force(points, 8, queries))
+    assert np.array_equal(nearest_neighbours(points, 600, queries[:3]).shape, (3, 600))
+
+
+def test_bad_queries_are_refused():
+    with pytest.raises(ValueError, match="queries must be a finite N x 3 array"):
+        nearest_neighbours(np.zeros((5, 3)), 2, np.array([[np.inf, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match="at most 5 \\(of 5 points\\)"):
+        nearest_neighbours(np.zeros((5, 3)), 6, np.zeros((2, 3)))

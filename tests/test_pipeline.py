@@ -254,6 +254,8 @@ def test_a_dense_window_is_fitted_on_a_seeded_sample_and_every_event_labelled(in
         np.testing.assert_array_equal(sampled.search_extent, full.search_extent)
     np.testing.assert_array_equal(sampled.labelled, full.labelled)
     assert not np.any(sampled.valid & ~full.valid)  # the sample is of the fitted events
+    np.testing.assert_array_equal(sampled.unsampled, full.valid & ~sampled.valid)
+    assert full.unsampled is None
     again, other = prepare(window, sparse, seed=3), prepare(window, sparse, seed=4)
     np.testing.assert_array_equal(again.valid, sampled.valid)
     assert np.any(other.valid != sampled.valid)
