@@ -1,4 +1,5 @@
-"""Exact k nearest neighbours of every point among the others, on a uniform grid of cells.
+"""Exact k nearest neighbours of every point among the others (or of query points among
+them), on a uniform grid of cells.
 
 Events in space-time (pixels, and time scaled to pixels) fill a box about evenly at the
 scale of their neighbours, so a grid whose cells hold a few points each finds a point's
