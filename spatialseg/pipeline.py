@@ -366,8 +366,11 @@ def _window_name(index: int, count: int | None) -> str:
 
 def _log_window(name: str, events: int, span: int, result: WindowResult, seconds: float) -> None:
     """The INFO line as a window ends: its events (``span``: with its context windows'),
-    clusters, iterations and time."""
+    how many the motions were fitted on where a dense window's were sampled, clusters,
+    iterations and time."""
     extra = f" ({span} with its context)" if span > events else ""
+    if result.prepared.unsampled is not None:
+        extra += f", fitted on a sample of {len(result.prepared.points)}"
     log.info(
         "%s: %d events%s, %s, %d iterations, %.1f s",
         name,

@@ -102,6 +102,8 @@ def window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) ->
         "units": res.prepared.units,
         "t_ref": res.t_ref,
         "grid_shape": list(res.prepared.grid.shape),
+        "n_fitted": len(res.prepared.points),  # the events the motions were fitted on
+        "sampled": res.prepared.unsampled is not None,  # a dense span's fit sample
         "iterations": c.iterations,
         "converged": c.converged,
         "stop_reason": c.reason,

@@ -23,6 +23,7 @@ from spatialseg.points import (
     window_objective,
 )
 from spatialseg.recording import DepthMap
+from spatialseg.results import window_summary
 from spatialseg.scenes import load_scene
 from spatialseg.settings import RefitSettings, Settings, settings_from, smoothing
 from spatialseg.starts import previous_init
@@ -261,6 +262,8 @@ def test_a_dense_window_is_fitted_on_a_seeded_sample_and_every_event_labelled(in
     assert np.any(other.valid != sampled.valid)
     res = segment_window(window, sparse, optimizers.create("ssa_ga"), seed=0)
     np.testing.assert_array_equal(res.labels >= 0, full.labelled)
+    summary = window_summary(res, None, None)  # result.json says the fit was a sample
+    assert summary["sampled"] and summary["n_fitted"] == len(sampled.points)
     if model == "spatial":  # the planar model on 1,300 of these 3,400 events fails (0.64)
         accuracy = segmentation_metrics(res.labels, window.ground_truth.labels)["accuracy"]
         assert accuracy > 0.95
