@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from spatialseg.grid import VoxelGrid
+from spatialseg.points import seeded_subset
 
 __all__ = [
     "PLANES",
@@ -482,7 +483,7 @@ def initial_motions(
         raise ValueError(f"lift must be M x 2 x 3 for image-plane points, got {np.shape(lift)}")
     cells = _cells(points, grid)
     m = len(points)
-    sample = np.sort(np.random.default_rng(seed).choice(m, min(m, int(max_events)), False))
+    sample = seeded_subset(m, min(m, int(max_events)), seed)
     a, b = _sample_constraints(
         cells,
         t,

@@ -33,6 +33,7 @@ __all__ = [
     "reference_time",
     "relabel_sigmas",
     "search_bounds",
+    "seeded_subset",
     "spatial_velocities",
     "volume_grid",
     "volume_objective",
@@ -175,8 +176,15 @@ def fit_sample(
     if len(points) <= limit:
         return None
     kept = np.zeros_like(fit)
-    kept[np.random.default_rng(seed).choice(np.flatnonzero(fit), limit, replace=False)] = True
+    kept[seeded_subset(np.flatnonzero(fit), limit, seed)] = True
     return kept
+
+
+def seeded_subset(pool: np.ndarray | int, size: int, seed: int) -> np.ndarray:
+    """``size`` of ``pool``'s entries (of ``range(pool)`` for a count) drawn uniformly
+    without replacement with ``seed``, in increasing order: the one way the method samples
+    events (the fit, the theta-step, the flow start)."""
+    return np.sort(np.random.default_rng(seed).choice(pool, size, replace=False))
 
 
 def volume_grid(

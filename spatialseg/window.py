@@ -44,6 +44,7 @@ from spatialseg.points import (
     reference_time,
     relabel_sigmas,
     search_bounds,
+    seeded_subset,
     spatial_velocities,
     volume_objective,
     voxel_shifts,
@@ -380,7 +381,7 @@ def _step_subset(
     if len(pool) == n and (limit is None or n <= limit):
         return None
     if limit is not None and len(pool) > limit:
-        pool = np.sort(np.random.default_rng(seed).choice(pool, limit, replace=False))
+        pool = seeded_subset(pool, limit, seed)
     return window_objective(prepared, t_ref, settings, pool), pool
 
 
