@@ -3,8 +3,8 @@
     python experiments/generalisation.py --split dev|heldout --per-family N
         [--models spatial planar spatial:clustering.max_iterations=10]
         [--families opposite many ...] [--json OUT] [--jobs J] [--cache DIR]
-        [--fix depth_flicker=0.1 ...] [--resume] [--optimiser-seeds N] [--first-run R]
-        [--totals]
+        [--fix depth_flicker=0.1 ...] [--density D] [--resume] [--optimiser-seeds N]
+        [--first-run R] [--totals]
 
 Seeds of ``dev`` are 0-999, those of ``heldout`` 1000 and above: choose defaults on
 ``dev`` only, report both. Each scene is drawn from its family and seed
@@ -17,9 +17,11 @@ consistent across windows) and, beside it, each window matched alone; mean IoU; 
 relative velocity error (metric models); the share of signal events left unassigned; the
 segmentation's wall time on one thread (``--jobs`` scenes run side by side). ``--fix``
 sets a modifier for every scene instead of drawing it (``depth_bias``, ``depth_flicker``,
-``holes``, ``noise``). The JSON is rewritten after every scene; ``--resume`` skips the
-scenes it already holds (a killed run goes on where it stopped; SIGTERM or Ctrl-C ends the
-``--jobs`` worker processes too). ``--optimiser-seeds N``
+``holes``, ``noise``); ``--density D`` records every scene more densely
+(:func:`~spatialseg.simulate.families.draw_scene`: the sensor's thresholds divided by D;
+kept in the JSON's ``fixed`` beside the modifiers). The JSON is rewritten after every
+scene; ``--resume`` skips the scenes it already holds (a killed run goes on where it
+stopped; SIGTERM or Ctrl-C ends the ``--jobs`` worker processes too). ``--optimiser-seeds N``
 segments each scene with N optimiser seeds, its own first (:func:`optimiser_seeds`): the
 seed alone moves one recording's accuracy by up to 0.28, so comparing two settings over
 several seeds per scene measures the settings, not the seeds; ``--first-run 1`` runs the
@@ -387,6 +389,13 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=1)
     parser.add_argument("--cache", type=Path, default=None)
     parser.add_argument("--fix", nargs="*", default=[])
+    parser.add_argument(
+        "--density",
+        type=float,
+        default=1.0,
+        metavar="D",
+        help="record every scene more densely: its sensor's thresholds divided by D",
+    )
     parser.add_argument("--resume", action="store_true", help="skip the scenes --json holds")
     parser.add_argument(
         "--optimiser-seeds",
@@ -415,11 +424,15 @@ def main() -> None:
         parser.error("--per-family, --jobs and --optimiser-seeds must be >= 1")
     if args.first_run < 0:
         parser.error("--first-run must be >= 0")
+    if not (np.isfinite(args.density) and args.density > 0):
+        parser.error("--density must be a finite number > 0")
     if args.resume and args.json is None:
         parser.error("--resume needs --json, the file to resume")
     try:
         seeds = split_seeds(args.split, args.per_family)
         fixed = _fixed_modifiers(args.fix)
+        if args.density != 1:
+            fixed["density"] = args.density
         rows = (
             resumed_rows(args.json, args.split, fixed, args.optimiser_seeds, args.first_run)
             if args.resume
@@ -481,7 +494,7 @@ def resumed_rows(
     )
     if same != (split, fixed, repeats, first_run):
         raise ValueError(
-            f"--resume: {path} holds another split, other --fix settings or other "
+            f"--resume: {path} holds another split, other --fix or --density settings or other "
             "--optimiser-seeds or --first-run"
         )
     return earlier["rows"]

@@ -180,6 +180,22 @@ def test_fixed_modifiers_replace_the_draw_and_leave_the_scene_alone():
     assert fixed.scene["depth_error"]["sigma"] == 0.1
 
 
+def test_density_divides_the_sensors_thresholds_and_records_more_events_of_one_scene():
+    drawn, dense = (
+        draw_scene("ego_sideways", 2, noise=0),
+        draw_scene("ego_sideways", 2, 3.0, noise=0),
+    )
+    assert dense.scene["objects"] == drawn.scene["objects"]
+    for key in ("threshold_mean", "threshold_std", "threshold_min", "refractory"):
+        assert dense.scene["sensor"][key] == pytest.approx(drawn.scene["sensor"][key] / 3)
+    sparse_events = simulate_scene(drawn.scene, seed=2, max_events=None, windows=1).events
+    dense_events = simulate_scene(dense.scene, seed=2, max_events=None, windows=1).events
+    assert len(dense_events) > 3 * len(sparse_events)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="density must be a finite number > 0"):
+            draw_scene("opposite", 2, bad)
+
+
 def test_unknown_family_and_bad_seed_and_modifier_are_refused_in_one_line():
     with pytest.raises(ValueError, match="unknown scene family 'nope'; choose from opposite"):
         draw_scene("nope", 0)
