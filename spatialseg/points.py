@@ -166,10 +166,12 @@ def fit_sample(
     at the end.
 
     Decision: a motion's contrast peak is set by how its events line up in the voxels they
-    fall in, so past some dozens of events per such voxel more of them sharpen little while
-    every pass costs them all. The voxels the events occupy, not the grid's, measure it:
-    a grid is mostly empty (its depth bins span the scene's depth, an object one or two),
-    so events per voxel of the grid would call a deep scene sparse at any event count."""
+    fall in, so more events per such voxel sharpen little while every pass costs them all;
+    and the defaults were chosen at about ten (the dev split's spans), so a denser window
+    fitted whole lost accuracy where its sample did not (docs/results.md, session 54). The
+    voxels the events occupy, not the grid's, measure it: a grid is mostly empty (its depth
+    bins span the scene's depth, an object one or two), so events per voxel of the grid
+    would call a deep scene sparse at any event count."""
     if per_voxel is None or len(points) <= per_voxel:
         return None
     limit = int(per_voxel * grid.occupied(points))

@@ -278,8 +278,9 @@ class ClusteringSettings:
     evals_per_step: int = 15
     #: Fit the motions (starts, loop, refit) on a random sample of at most this many
     #: events per voxel the unwarped events occupy in the grid, and label the others once
-    #: at the end; null: fit on every event (docs/method.md, "The fit on a sample").
-    fit_per_voxel: float | None = 50.0
+    #: at the end; null: fit on every event. 10: about the density the defaults were chosen
+    #: at (docs/method.md, "The fit on a sample").
+    fit_per_voxel: float | None = 10.0
     #: Theta-step on a random sample of at most this many events (P-step on all); null: all.
     step_events: int | None = 20000
     #: Events on an occlusion edge in the theta-step too; false: the P-step labels them,
