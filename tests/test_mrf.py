@@ -144,6 +144,12 @@ def test_an_event_labelled_given_held_neighbours_takes_the_cheapest_label():
         [(near != label).sum(axis=1) for label in range(3)], axis=1
     )
     np.testing.assert_array_equal(found, energy.argmin(axis=1))
+    # a tie (equal memberships, four held neighbours of each label) goes to the lower label,
+    # as numpy's argmin of the energies would
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    for held in ([0, 1] * 4, [1, 0] * 4):
+        tie = conditional_labels(np.full((1, 2), 0.5), np.zeros((1, 3)), corners, held, 0.5)
+        assert tie.tolist() == [0]
 
 
 @pytest.mark.parametrize("seed", range(3))
