@@ -77,6 +77,18 @@ def test_resume_refuses_a_file_of_another_number_of_optimiser_seeds(tmp_path):
         generalisation.resumed_rows(path, "dev", {}, 3)
     with pytest.raises(ValueError, match="other --optimiser-seeds or --first-run"):
         generalisation.resumed_rows(path, "dev", {}, 1, first_run=1)
+    with pytest.raises(ValueError, match="other --fix or --density settings"):
+        generalisation.resumed_rows(path, "dev", {"density": 4.0}, 1)
+
+
+@pytest.mark.parametrize("density", ["0", "-2", "nan"])
+def test_a_density_that_is_not_positive_is_refused_in_one_line(density, monkeypatch, capsys):
+    argv = ["generalisation.py", "--split", "dev", "--per-family", "1", "--density", density]
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit) as stopped:
+        generalisation.main()
+    assert stopped.value.code == 2
+    assert "--density must be a finite number > 0" in capsys.readouterr().err
 
 
 def test_motions_found_is_the_share_with_as_many_objects_as_motions():
