@@ -359,6 +359,18 @@ class ModelEvaluator:
         the volume (the P-step)."""
         return self.inner.p_step(self._full(theta), sigma, stride, ordered=ordered)
 
+    def p_step_at(
+        self,
+        theta: np.ndarray,
+        sigma: float | Sequence[float],
+        stride: int,
+        points: np.ndarray,
+        dt: np.ndarray,
+    ) -> np.ndarray:
+        """The P-step's smoothed volume for ``theta`` at other events (``points``, ``dt``),
+        each warped by ``theta`` (:meth:`VolumeObjective.p_step_at`)."""
+        return self.inner.p_step_at(self._full(theta), sigma, stride, points, dt)
+
 
 def window_objective(
     prepared: Prepared,

@@ -732,6 +732,51 @@ class VolumeObjective:
         crowd the border is not diluted there against one in the middle (zero boundaries
         cost 6 % accuracy on a 4,000-event interior window).
         """
+        value, events, grid_args, sampled_from, per_voxel = self._p_step_volume(
+            theta, sigma, stride
+        )
+        sampled = np.empty(self.n_events)
+        _sample(
+            *events[:2], *events[3:], *grid_args, sampled_from, self._cells, self._fracs, sampled
+        )
+        sampled /= per_voxel
+        if ordered:
+            return sampled, value
+        out = np.empty_like(sampled)
+        out[self._order] = sampled
+        return out, value
+
+    def p_step_at(
+        self,
+        theta: np.ndarray,
+        sigma: float | Sequence[float],
+        stride: int,
+        points: np.ndarray,
+        dt: np.ndarray,
+    ) -> np.ndarray:
+        """:meth:`p_step`'s smoothed ``V(theta)`` of this objective's events (their
+        weights voting) at other events (``points``, M x 3, and ``dt``, M), each warped by
+        ``theta``: a fit's volumes read where the events left out of the fit fall. Equal to
+        the P-step of an objective holding both, the others with weight 0, without voting
+        or locating the others in it."""
+        value_and_volume = self._p_step_volume(theta, sigma, stride)
+        events, grid_args, sampled_from, per_voxel = value_and_volume[1:]
+        hint = "; drop events without depth first"
+        pts = _finite_array("points", points, (None, 3), np.float64, hint).astype(self.dtype)
+        times = _finite_array("dt", dt, (len(pts),), np.float64, hint).astype(self.dtype)
+        cells = np.full(len(pts), -1, dtype=self._cells.dtype)  # no cached cells: locate each
+        fracs = np.empty((len(pts), 3), dtype=self._fracs.dtype)
+        sampled = np.empty(len(pts))
+        _sample(pts, times, events[3], *grid_args, sampled_from, cells, fracs, sampled)
+        return sampled / per_voxel
+
+    def _p_step_volume(
+        self, theta: np.ndarray, sigma: float | Sequence[float], stride: int
+    ) -> tuple[float, tuple, tuple, np.ndarray, float]:
+        """Vote ``V(theta)`` on the P-step's grid and smooth it (:meth:`p_step`): the
+        objective of ``V(theta)``, the kernels' event arguments, the P-step grid's, the
+        padded smoothed volume, and the fine voxels per P-step voxel. The events' cell cache
+        then holds their cells in that grid."""
         coarse, votes, sampled_from, raw, smooth = self._p_step_buffers(stride)
         sigmas, per_voxel = self._p_step_blur(coarse, sigma, stride)
         with self._voted(theta) as (args, mass):
@@ -747,16 +792,7 @@ class VolumeObjective:
                 _clear(*events, *grid_args, votes, self._cells)
         gaussian_smooth(raw, sigmas, out=smooth, work=raw, mode="reflect")
         self._interior(sampled_from)[...] = smooth
-        sampled = np.empty(self.n_events)
-        _sample(
-            *events[:2], *events[3:], *grid_args, sampled_from, self._cells, self._fracs, sampled
-        )
-        sampled /= per_voxel
-        if ordered:
-            return sampled, value
-        out = np.empty_like(sampled)
-        out[self._order] = sampled
-        return out, value
+        return value, events, grid_args, sampled_from, per_voxel
 
     def sample(self, theta: np.ndarray, volume: np.ndarray | None = None) -> np.ndarray:
         """``volume`` (default: the raw ``V(theta)``) interpolated at each warped event (N,).

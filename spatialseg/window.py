@@ -23,7 +23,6 @@ from spatialseg.clustering import (
     ConvergenceRules,
     IterationRecord,
     StepStage,
-    cluster_responses,
     count_motions,
     initial_memberships,
     iterative_clustering,
@@ -540,14 +539,12 @@ def label_rest(
     the nearest fitted events (:func:`nearest_memberships`), not a tie that the column order
     would break."""
     points, t, _ = prepared.rest
-    both = np.vstack([prepared.points, points])
-    dt = np.concatenate([prepared.t, t]) - t_ref
-    volume = volume_objective(both, dt, prepared.grid, settings)
-    evaluator = ModelEvaluator(volume, prepared.dim)
-    zeros = np.zeros((len(points), result.probabilities.shape[1]))
-    memberships = np.vstack([result.probabilities, zeros])
-    responses = cluster_responses(evaluator, result.thetas, memberships, *blur)[0]
-    responses = responses[len(prepared.points) :]
+    volume = volume_objective(prepared.points, prepared.t - t_ref, prepared.grid, settings)
+    fitted = ModelEvaluator(volume, prepared.dim)
+    responses = np.empty((len(points), len(result.thetas)))
+    for j, theta in enumerate(result.thetas):
+        fitted.set_weights(result.probabilities[:, j])
+        responses[:, j] = fitted.p_step_at(theta, *blur, points, t - t_ref)
     rest = update_memberships(responses)
     unexplained = ~np.any(responses > 0, axis=1)
     if unexplained.any() and len(prepared.points):

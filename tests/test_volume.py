@@ -314,6 +314,27 @@ def test_weights_and_responses_in_the_kernels_order_are_the_same_ones(stride):
 
 
 @GRIDS
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("stride", [1, 2])
+def test_p_step_at_other_events_is_theirs_with_weight_zero(grid, dtype, stride):
+    """p_step_at: the fitted events' smoothed volume read at other events is, to the bit,
+    the P-step response those events get in one objective with both, theirs weighted 0."""
+    points, dt, w = _events(300, seed=11, grid=grid)
+    others, others_dt, _ = _events(200, seed=12, grid=grid)
+    both = VolumeObjective(
+        np.vstack([points, others]), np.concatenate([dt, others_dt]), grid, "variance",
+        np.concatenate([w, np.zeros(200)]), dtype,
+    )  # fmt: skip
+    fitted = VolumeObjective(points, dt, grid, "variance", w, dtype)
+    expected = both.p_step(THETA, 1.5, stride)[0][300:]
+    for _ in range(2):  # buffers reused
+        found = fitted.p_step_at(THETA, 1.5, stride, others, others_dt)
+        assert np.array_equal(found, expected) and np.any(found > 0)
+    with pytest.raises(ValueError, match="points must have shape N x 3"):
+        fitted.p_step_at(THETA, 1.5, stride, others[:, :2], others_dt)
+
+
+@GRIDS
 @pytest.mark.parametrize("depth_sigma", [None, 0.5])
 def test_p_step_stride_is_the_coarse_references(grid, depth_sigma):
     """``stride`` 2: the reference vote on a grid twice as coarse in x and y (depth keeps its
