@@ -759,8 +759,7 @@ class VolumeObjective:
         ``theta``: a fit's volumes read where the events left out of the fit fall. Equal to
         the P-step of an objective holding both, the others with weight 0, without voting
         or locating the others in it."""
-        value_and_volume = self._p_step_volume(theta, sigma, stride)
-        events, grid_args, sampled_from, per_voxel = value_and_volume[1:]
+        _, events, grid_args, sampled_from, per_voxel = self._p_step_volume(theta, sigma, stride)
         hint = "; drop events without depth first"
         pts = _finite_array("points", points, (None, 3), np.float64, hint).astype(self.dtype)
         times = _finite_array("dt", dt, (len(pts),), np.float64, hint).astype(self.dtype)

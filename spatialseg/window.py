@@ -45,7 +45,6 @@ from spatialseg.points import (
     search_bounds,
     seeded_subset,
     spatial_velocities,
-    volume_objective,
     voxel_shifts,
     window_objective,
 )
@@ -270,7 +269,7 @@ def segment_window(
     probabilities = _full_probabilities(result.probabilities, prepared.valid)
     if prepared.rest is not None and len(prepared.rest[0]):
         blur = p_step_settings(clustering, alone=alone)
-        rest = label_rest(prepared, t_ref, settings, result, blur)
+        rest = label_rest(prepared, t_ref, evaluator, result, blur)
         probabilities[prepared.rest[2]] = rest
     timings["label"] = time.perf_counter() - start
     labels = assign_labels(
@@ -528,23 +527,22 @@ def prior_weights(
 def label_rest(
     prepared: Prepared,
     t_ref: float,
-    settings: Settings,
+    fitted: ModelEvaluator,
     result: ClusteringResult,
     blur: tuple[tuple[float, float, float], int],
 ) -> np.ndarray:
     """Memberships (R x K) of the events left out of the fit (``prepared.rest``): each
-    cluster's volume of the fitted events (their final memberships), smoothed as in the
-    P-step (``blur``: sigmas and stride), sampled where the cluster's motion warps each of
-    them; normalised (Eq. 26). An event no cluster's volume reaches takes the memberships of
-    the nearest fitted events (:func:`nearest_memberships`), not a tie that the column order
-    would break."""
+    cluster's volume of the fitted events (``fitted``, the window's P-step evaluator over
+    them; weighted by their final memberships), smoothed as in the P-step (``blur``: sigmas
+    and stride), sampled where the cluster's motion warps each of them; normalised (Eq.
+    26). An event no cluster's volume reaches takes the memberships of the nearest fitted
+    events (:func:`nearest_memberships`), not a tie that the column order would break."""
     points, t, _ = prepared.rest
-    volume = volume_objective(prepared.points, prepared.t - t_ref, prepared.grid, settings)
-    fitted = ModelEvaluator(volume, prepared.dim)
+    dt = t - t_ref
     responses = np.empty((len(points), len(result.thetas)))
     for j, theta in enumerate(result.thetas):
         fitted.set_weights(result.probabilities[:, j])
-        responses[:, j] = fitted.p_step_at(theta, *blur, points, t - t_ref)
+        responses[:, j] = fitted.p_step_at(theta, *blur, points, dt)
     rest = update_memberships(responses)
     unexplained = ~np.any(responses > 0, axis=1)
     if unexplained.any() and len(prepared.points):
