@@ -15,7 +15,7 @@ import maxflow
 import numpy as np
 from numba import njit, prange
 
-from spatialseg.neighbours import nearest_neighbours
+from spatialseg.neighbours import agreeing_labels, nearest_neighbours
 
 __all__ = ["NEIGHBOURS", "conditional_labels", "neighbour_pairs", "potts_labels", "space_time"]
 
@@ -186,9 +186,16 @@ def conditional_labels(
     if len(p) == 0 or len(fixed_points) == 0 or weight == 0 or p.shape[1] < 2:
         return labels
     k = min(k, len(fixed_points))
-    neighbours = nearest_neighbours(fixed_points, k, points)
     held = np.asarray(fixed_labels, dtype=np.int64)
-    return _held_choice(-np.log(np.maximum(p, FLOOR)), neighbours, held, float(weight))
+    cost = -np.log(np.maximum(p, FLOOR))
+    shared = agreeing_labels(fixed_points, held, k, points)
+    # an event whose k neighbours all hold one label disagrees with k of them in any other
+    labels = np.argmin(cost + weight * (k * (np.arange(p.shape[1]) != shared[:, None])), axis=1)
+    ask = np.flatnonzero(shared < 0)
+    if len(ask):
+        neighbours = nearest_neighbours(fixed_points, k, points[ask])
+        labels[ask] = _held_choice(cost[ask], neighbours, held, float(weight))
+    return labels
 
 
 @njit(cache=True, parallel=True)

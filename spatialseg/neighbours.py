@@ -9,17 +9,20 @@ nearer point could still lie there: about 2.5x faster than scipy's k-d tree over
 numba's threads. Ties in distance go to the lower index, so the answer is one function of
 the points, whatever the threads.
 
-Arrays in, indices out: :func:`nearest_neighbours`.
+Arrays in, indices out: :func:`nearest_neighbours`; labels in, labels out:
+:func:`agreeing_labels`, the label a query's nearest points all carry where the grid shows
+it without a search.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit, prange
+from scipy import ndimage
 
 from spatialseg.volume import counting_sort
 
-__all__ = ["nearest_neighbours"]
+__all__ = ["agreeing_labels", "nearest_neighbours"]
 
 #: Points per cell on average over the points' bounding box: fewer cells to visit against
 #: fewer points per cell (0.5-1.5 within 5 % of each other on 15,000-1,000,000 events; 3
@@ -31,6 +34,9 @@ MAX_CELLS_PER_POINT = 2
 #: The search's stopping distances are shrunk by this share of the coordinates' magnitude,
 #: so a point that rounding put into the next cell is never missed.
 ROUNDING = 1e-9
+#: Once the 27 cells around a query's own hold k points, its k nearest are at most
+#: 2 sqrt(3) < 4 cell sides away, so within this many cells of its own along every axis.
+AGREEING_RING = 4
 
 
 def nearest_neighbours(points: np.ndarray, k: int, queries: np.ndarray | None = None) -> np.ndarray:
@@ -44,9 +50,7 @@ def nearest_neighbours(points: np.ndarray, k: int, queries: np.ndarray | None = 
     top = n - 1 if queries is None else n
     if not 1 <= k <= top:
         raise ValueError(f"k must be at least 1 and at most {top} (of {n} points), got {k}")
-    lo = points.min(axis=0)
-    extent = points.max(axis=0) - lo
-    size, shape = _cells(extent, n)
+    lo, size, shape = _grid(points)
     # the points grouped by cell, each cell's in index order, and where each cell's run starts
     order, starts = counting_sort(_cells_of(points, lo, size, shape), int(np.prod(shape)))
     grouped = points[order]
@@ -60,6 +64,52 @@ def nearest_neighbours(points: np.ndarray, k: int, queries: np.ndarray | None = 
     margin = ROUNDING * (reach + size)
     own = np.full(len(asked), -1, np.int64)  # a query is none of the points
     return _search(grouped, order, starts, asked, own, k, lo, size, shape, margin)
+
+
+def agreeing_labels(
+    points: np.ndarray, labels: np.ndarray, k: int, queries: np.ndarray
+) -> np.ndarray:
+    """For each query (Q x 3, finite), the label (of ``labels``, N, >= 0) that all its ``k``
+    nearest ``points`` (N x 3, finite, ``1 <= k <= N``) carry, where the grid of
+    :func:`nearest_neighbours` shows it without finding them; -1 where they might differ
+    (or the query lies beyond the points' box): those need the search.
+
+    Decision: when a query's 27 surrounding cells hold ``k`` points, its ``k`` nearest lie
+    within :data:`AGREEING_RING` cells of its own, so one label over that block answers
+    for them. Labelling the events a dense window's fit left out asks exactly this of
+    most of them (all but 0-20 % on 1,000,000-event windows), and the search was most of
+    that stage's time (docs/performance.md, session 55)."""
+    points = _finite(points, "points")
+    asked = _finite(queries, "queries")
+    labels = np.asarray(labels, dtype=np.int64)
+    if labels.shape != (len(points),) or (labels.size and labels.min() < 0):
+        raise ValueError("labels must be one label >= 0 per point")
+    if not 1 <= k <= len(points):
+        raise ValueError(f"k must be at least 1 and at most {len(points)}, got {k}")
+    lo, size, shape = _grid(points)
+    cells = tuple(shape)
+    own = np.unravel_index(_cells_of(points, lo, size, shape), cells)
+    count = np.zeros(cells, np.int64)
+    np.add.at(count, own, 1)
+    none = int(labels.max(initial=0)) + 1  # the lowest label of a cell without points
+    low = np.full(cells, none, np.int64)
+    high = np.full(cells, -1, np.int64)
+    np.minimum.at(low, own, labels)
+    np.maximum.at(high, own, labels)
+    block = 2 * AGREEING_RING + 1
+    low = ndimage.minimum_filter(low, size=block, mode="constant", cval=none)
+    high = ndimage.maximum_filter(high, size=block, mode="constant", cval=-1)
+    near = ndimage.correlate(count, np.ones((3, 3, 3), np.int64), mode="constant")
+    known = np.where((low == high) & (near >= k), high, -1).reshape(-1)
+    inside = np.all((asked >= lo) & (asked <= lo + shape * size), axis=1)
+    return np.where(inside, known[_cells_of(asked, lo, size, shape)], -1)
+
+
+def _grid(points: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """The search grid over ``points``: its low corner (3,), the cells' side and its shape."""
+    lo = points.min(axis=0)
+    size, shape = _cells(points.max(axis=0) - lo, len(points))
+    return lo, size, shape
 
 
 def _finite(points: np.ndarray, name: str) -> np.ndarray:

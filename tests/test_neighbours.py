@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from spatialseg.neighbours import nearest_neighbours
+from spatialseg.neighbours import agreeing_labels, nearest_neighbours
 
 
 def _brute_force(points: np.ndarray, k: int, queries: np.ndarray | None = None) -> np.ndarray:
@@ -110,3 +110,26 @@ def test_bad_queries_are_refused():
         nearest_neighbours(np.zeros((5, 3)), 2, np.array([[np.inf, 0.0, 0.0]]))
     with pytest.raises(ValueError, match="at most 5 \\(of 5 points\\)"):
         nearest_neighbours(np.zeros((5, 3)), 6, np.zeros((2, 3)))
+
+
+@pytest.mark.parametrize("layout", ["halves", "blobs"])
+def test_a_label_said_to_agree_is_every_nearest_points_label(layout):
+    """agreeing_labels: where it names a label, each of the query's k nearest points (by a
+    search of every pair) carries it; it names one for many queries inside one-label
+    regions, none for a query beyond the points' box."""
+    rng = np.random.default_rng(11)
+    if layout == "halves":
+        points = rng.uniform(0, 60, (20000, 3))
+        labels = (points[:, 0] > 30).astype(np.int64)
+    else:  # a label per blob of points, the blobs apart
+        labels = rng.integers(0, 5, 20000)
+        points = rng.uniform(0, 300, (5, 3))[labels] + rng.normal(0, 4.0, (20000, 3))
+    picked = rng.integers(0, len(points), 500)
+    queries = np.vstack([points[picked] + rng.normal(0, 0.5, (500, 3)), [[1e4, 0.0, 0.0]]])
+    agreed = agreeing_labels(points, labels, 8, queries)
+    near = labels[_brute_force(points, 8, queries)]
+    named = agreed >= 0
+    assert np.all(near[named] == agreed[named, None])
+    assert named.mean() > 0.3 and agreed[-1] == -1
+    with pytest.raises(ValueError, match="one label >= 0 per point"):
+        agreeing_labels(points, -labels - 1, 8, queries)
