@@ -62,6 +62,8 @@ _NULLABLE = frozenset(
         "init.tiles.explained",
         "clustering.fit_per_voxel",
         "clustering.step_events",
+        "clustering.step_optimizer",
+        "clustering.step_radius",
         "clustering.max_depth_change",
         "clustering.relabel_sigma",
         "clustering.relabel_prior_scale",
