@@ -31,8 +31,6 @@ VARIANTS: dict[str, tuple[str, dict[str, Any]]] = {
             "danger_step": "fitness_difference",
         },
     ),
-    # Gradient ascent with backtracking from a start: the ascent SSA-GA refines its best with.
-    "gradient_ascent_ls": ("gradient_ascent", {"line_search": True}),
     # Clerc's constriction form (needs c1 + c2 > 4).
     "pso_constriction": ("pso", {"form": "constriction", "c1": 2.05, "c2": 2.05}),
     "nlopt_bobyqa": ("nlopt", {"algorithm": "LN_BOBYQA"}),

@@ -62,8 +62,6 @@ _NULLABLE = frozenset(
         "init.tiles.explained",
         "clustering.fit_per_voxel",
         "clustering.step_events",
-        "clustering.step_optimizer",
-        "clustering.step_radius",
         "clustering.max_depth_change",
         "clustering.relabel_sigma",
         "clustering.relabel_prior_scale",

@@ -272,29 +272,15 @@ def maximize_contrast(
     return np.asarray(res.x, dtype=np.float64), int(res.n_evals)
 
 
-def trust_region(bounds: np.ndarray, theta: np.ndarray, radius: float | None) -> np.ndarray:
-    """The part of the search box ``bounds`` (dim x 2) within ``radius`` of its width
-    around ``theta`` (the whole box for None): where a local climb from ``theta`` may go."""
-    if radius is None:
-        return bounds
-    reach = radius * (bounds[:, 1] - bounds[:, 0])
-    centre = np.clip(theta, bounds[:, 0], bounds[:, 1])
-    return np.column_stack(
-        [np.maximum(bounds[:, 0], centre - reach), np.minimum(bounds[:, 1], centre + reach)]
-    )
-
-
 @dataclass(frozen=True)
 class StepStage:
     """Each cluster's theta-step: ``optimizer`` with ``budget`` evaluations on
-    ``evaluator``, whose events are ``subset`` of the P-step's (every one: ``slice(None)``),
-    within ``radius`` of the box's width around the velocity (None: the whole box)."""
+    ``evaluator``, whose events are ``subset`` of the P-step's (every one: ``slice(None)``)."""
 
     evaluator: ClusterEvaluator
     optimizer: Maximizer
     budget: int
     subset: np.ndarray | slice = field(default_factory=lambda: slice(None))
-    radius: float | None = None
 
 
 def p_step(
@@ -405,9 +391,8 @@ def _theta_step(
     evals = 0
     for j in range(len(thetas)):
         step.evaluator.set_weights(p[rows, j], ordered=True)
-        box = trust_region(bounds, thetas[j], step.radius)
         thetas[j], n = maximize_contrast(
-            step.evaluator, step.optimizer, thetas[j], box, step.budget, int(seeds[j])
+            step.evaluator, step.optimizer, thetas[j], bounds, step.budget, int(seeds[j])
         )
         evals += n
     return evals

@@ -276,14 +276,6 @@ class ClusteringSettings:
     #: Optimiser budget per cluster per theta-step (30 until session 41: half of it paid
     #: nothing on the yardstick's dev seeds; docs/method.md, "theta-step budget").
     evals_per_step: int = 15
-    #: The theta-step's optimiser preset: a local climb from each cluster's velocity (the
-    #: run's ``optimizer`` searches the starts); null: the run's optimizer, the paper's loop.
-    #: A flock of 20 spends 15 evaluations on draws and kept the velocities where the start
-    #: put them (docs/method.md, "The theta-step climbs").
-    step_optimizer: str | None = "nlopt_bobyqa"
-    #: The theta-step climbs within this share of the search box's width around each
-    #: velocity, as the refit does; null: anywhere in the box.
-    step_radius: float | None = 0.1
     #: Fit the motions (starts, loop, refit) on a random sample of at most this many
     #: events per voxel the unwarped events occupy in the grid, and label the others once
     #: at the end; null: fit on every event. 10: about the density the defaults were chosen
@@ -342,10 +334,6 @@ class ClusteringSettings:
                 f"clustering.label_tol must be a number in [0, 1) or null, got {self.label_tol!r}"
             )
         integer_setting(self.evals_per_step, "clustering.evals_per_step", 1)
-        if self.step_optimizer is not None:
-            _check_optimizer_preset(self.step_optimizer, "clustering.step_optimizer")
-        if self.step_radius is not None:
-            _in_range(self.step_radius, "clustering.step_radius", 0, 1, open_low=True)
         optional_positive(self.fit_per_voxel, "clustering.fit_per_voxel")
         integer_setting(self.step_events, "clustering.step_events", 1, optional=True)
         _in_range(self.max_displacement, "clustering.max_displacement", 0, 1, open_low=True)

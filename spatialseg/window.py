@@ -29,7 +29,6 @@ from spatialseg.clustering import (
     maximize_contrast,
     p_step,
     repaired_memberships,
-    trust_region,
     update_memberships,
     weak_cluster,
 )
@@ -150,14 +149,13 @@ def segment_window(
         prepared, 1.0, clustering.max_depth_change, windows=len(window.depth_maps) - 1
     )
     objectives: tuple[ModelEvaluator, StepStage | None] | None = None
-    climber = step_optimizer(settings.clustering, optimizer)
 
     def shared() -> tuple[ModelEvaluator, StepStage | None]:
         """The objectives every start's loop shares, built on first use: after the first
         start, so a tile start's volumes are freed first (or for the ``previous`` start)."""
         nonlocal objectives
         if objectives is None:
-            objectives = _window_objectives(prepared, t_ref, settings, climber, seed=seed)
+            objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
         return objectives
 
     def cluster(init: motion_init.InitResult, method: str, box: np.ndarray) -> ClusteringResult:
@@ -167,7 +165,7 @@ def segment_window(
             prepared,
             shared(),
             clustering,
-            climber,
+            optimizer,
             box,
             seed=seed,
             on_iteration=_iteration_logger(progress, method, on_iteration),
@@ -345,13 +343,6 @@ def _with_start(settings: Settings, method: str) -> Settings:
     return replace(settings, init=replace(settings.init, method=method))
 
 
-def step_optimizer(clustering: ClusteringSettings, optimizer: Any) -> Any:
-    """The theta-step's optimiser: ``clustering.step_optimizer``'s preset, or the run's."""
-    if clustering.step_optimizer is None:
-        return optimizer
-    return optimizers.preset(clustering.step_optimizer)
-
-
 def _window_objectives(
     prepared: Prepared, t_ref: float, settings: Settings, optimizer: Any, *, seed: int
 ) -> tuple[ModelEvaluator, StepStage | None]:
@@ -359,10 +350,8 @@ def _window_objectives(
     (:func:`_step_subset`; None: on every event), shared by the window's starts."""
     evaluator = window_objective(prepared, t_ref, settings)
     step = _step_subset(prepared, t_ref, settings, seed=seed)
-    budget, radius = settings.clustering.evals_per_step, settings.clustering.step_radius
-    if step is None:
-        return evaluator, StepStage(evaluator, optimizer, budget, radius=radius)
-    return evaluator, StepStage(step[0], optimizer, budget, step[1], radius)
+    budget = settings.clustering.evals_per_step
+    return evaluator, None if step is None else StepStage(step[0], optimizer, budget, step[1])
 
 
 def _step_subset(
@@ -493,10 +482,16 @@ def refit_velocities(
     index = off_edge_events(prepared, result.thetas.shape[0])
     evaluator = window_objective(prepared, t_ref, settings, index)
     optimizer = optimizers.preset(refit.optimizer)
+    reach = refit.radius * (bounds[:, 1] - bounds[:, 0])
     thetas = result.thetas.copy()
     for j in range(thetas.shape[0]):
         evaluator.set_weights(result.probabilities[index, j])
-        near = trust_region(bounds, thetas[j], refit.radius)
+        near = np.column_stack(
+            [
+                np.maximum(bounds[:, 0], thetas[j] - reach),
+                np.minimum(bounds[:, 1], thetas[j] + reach),
+            ]
+        )
         thetas[j], _ = maximize_contrast(evaluator, optimizer, thetas[j], near, refit.evals, seed)
     return replace(result, thetas=thetas)
 

@@ -21,7 +21,6 @@ from spatialseg.clustering import (
     iterative_clustering,
     p_step,
     repaired_memberships,
-    trust_region,
     update_memberships,
 )
 from spatialseg.config import conf_dir
@@ -109,43 +108,6 @@ def _two_motion_cloud(rng: np.random.Generator):
         points.append(xyz + (tj - 0.1)[:, None] * truth[j])
         labels.append(np.full(n, j))
     return np.vstack(points), t - 0.1, np.concatenate(labels), truth
-
-
-def test_a_trust_region_is_the_box_near_a_velocity():
-    """trust_region: within radius of the box's width around theta, inside the box; the
-    whole box for None."""
-    bounds = np.array([[-1.0, 1.0], [0.0, 4.0], [-0.1, 0.1]])
-    near = trust_region(bounds, np.array([0.95, 2.0, -0.5]), 0.1)
-    np.testing.assert_allclose(near, [[0.75, 1.0], [1.6, 2.4], [-0.1, -0.08]])
-    assert trust_region(bounds, np.zeros(3), None) is bounds
-
-
-def test_a_local_theta_step_climbs_from_a_start_off_the_motions():
-    """The theta-step as a local climb in a trust region (nlopt_bobyqa, 15 evaluations,
-    a tenth of the box): from velocities 0.05 off the truth, each ends nearer to it."""
-    rng = np.random.default_rng(0)
-    points, dt, labels, truth = _two_motion_cloud(rng)
-    grid = grid_around(points, np.array([0.005, 0.005, 0.02]), 0.1, 10**7)
-    evaluator = ModelEvaluator(VolumeObjective(points, dt, grid, "variance"), 3)
-    start = truth + np.array([[0.05, -0.04, 0.0], [-0.04, 0.05, 0.0]])
-    p0 = initial_memberships(points, grid.voxel_size, labels, 2, mode="flow", confidence=0.9)
-    bounds = np.array([[-1.0, 1.0], [-1.0, 1.0], [-0.1, 0.1]])
-    climber = optimizers.preset("nlopt_bobyqa")
-    result = iterative_clustering(
-        evaluator,
-        climber,
-        start,
-        p0,
-        bounds,
-        rules=ConvergenceRules(max_iterations=5, tol=0.0, patience=2),
-        evals_per_step=15,
-        p_step_sigma=2.0,
-        seed=0,
-        step=StepStage(evaluator, climber, 15, radius=0.1),
-    )
-    before = np.linalg.norm(start[:, :2] - truth[:, :2], axis=1)
-    after = np.linalg.norm(result.thetas[:, :2] - truth[:, :2], axis=1)
-    assert np.all(after < 0.5 * before)
 
 
 def test_clustering_recovers_two_known_motions():
