@@ -21,6 +21,7 @@ from spatialseg.mrf import (
     potts_labels,
     space_time,
 )
+from spatialseg.neighbours import agreeing_labels
 from spatialseg.points import Prepared
 from spatialseg.recording import Camera
 from spatialseg.scenes import load_scene
@@ -136,15 +137,21 @@ def test_an_event_labelled_given_held_neighbours_takes_the_cheapest_label():
     assert conditional_labels(p, points, fixed, fixed_labels, 0.0).tolist() == [1, 1, 0]
     queries = rng.uniform(0, 20, (50, 3))
     q = rng.dirichlet([1.0, 1.0, 1.0], 50)
-    distance = ((queries[:, None] - fixed[None]) ** 2).sum(axis=2)
-    # labels at random (every event searched) and in three slabs (most told by the grid)
-    for held in (rng.integers(0, 3, 400), (fixed[:, 0] // 7).astype(np.int64)):
-        found = conditional_labels(q, queries, fixed, held, 0.7)
+    # labels at random (every event searched) and in halves of a denser set (away from
+    # the middle, the grid tells an event its neighbours' one label without the search)
+    dense = rng.uniform(0, 20, (6000, 3))
+    for held_at, held in (
+        (fixed, rng.integers(0, 3, 400)),
+        (dense, 2 * (dense[:, 0] > 10).astype(np.int64)),
+    ):
+        found = conditional_labels(q, queries, held_at, held, 0.7)
+        distance = ((queries[:, None] - held_at[None]) ** 2).sum(axis=2)
         near = held[np.argsort(distance, axis=1, kind="stable")[:, :8]]
         energy = -np.log(np.maximum(q, FLOOR)) + 0.7 * np.stack(
             [(near != label).sum(axis=1) for label in range(3)], axis=1
         )
         np.testing.assert_array_equal(found, energy.argmin(axis=1))
+    assert np.mean(agreeing_labels(held_at, held, 8, queries) >= 0) > 0.2
     # a tie (equal memberships, four held neighbours of each label) goes to the lower label,
     # as numpy's argmin of the energies would
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
