@@ -22,9 +22,9 @@ import copy
 import numbers
 import time
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields, is_dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args, get_type_hints
 
 import numpy as np
 
@@ -54,19 +54,25 @@ _PRESET = "preset"
 #: (the recording, ``n_clusters``, ``seed``) or the command line's alone.
 _NOT_SETTINGS = ("scene", "seed", "n_clusters", "tracking", "output", "hydra")
 
-#: Settings whose default is a value and that take null as well (conf/config.yaml says
-#: what null means for each); elsewhere null is refused unless the default is null.
-_NULLABLE = frozenset(
-    {
-        "edpa.edge_ratio",
-        "init.tiles.explained",
-        "clustering.fit_per_voxel",
-        "clustering.step_events",
-        "clustering.max_depth_change",
-        "clustering.relabel_sigma",
-        "clustering.relabel_prior_scale",
-    }
-)
+
+def _nullable(cls: type = Settings, prefix: str = "") -> frozenset[str]:
+    """The dotted keys of the settings whose type admits null (spatialseg/settings.py
+    says what null means for each), read from the dataclasses' own annotations so that a
+    new optional setting needs no second list."""
+    hints = get_type_hints(cls)
+    keys: set[str] = set()
+    for item in fields(cls):
+        kind = hints[item.name]
+        if is_dataclass(kind):
+            keys |= _nullable(kind, f"{prefix}{item.name}.")
+        elif type(None) in get_args(kind):
+            keys.add(prefix + item.name)
+    return frozenset(keys)
+
+
+#: Settings that take null as well as their type (elsewhere null is refused unless the
+#: default is null).
+_NULLABLE = _nullable()
 
 _SETTINGS_FORMS = (
     "a section as a mapping, clustering={'max_iterations': 5}, or a dotted key, "
@@ -151,7 +157,7 @@ def _kind(default: Any) -> str:
 def _fits(key: str, value: Any, default: Any) -> bool:
     """Whether ``value`` has the type of the setting's ``default``: an integer for an
     integer, a number for a number, a list or one number for a list (a P-step sigma); null
-    where the default is null or the setting documents null (:data:`_NULLABLE`)."""
+    where the default is null or its type admits it (:data:`_NULLABLE`)."""
     if value is None:
         return default is None or key in _NULLABLE
     number = isinstance(value, numbers.Real) and not isinstance(value, bool)

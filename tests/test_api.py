@@ -189,11 +189,14 @@ def test_a_composed_config_is_the_callers_own() -> None:
     assert compose_config("n_clusters=3") == untouched and untouched["n_clusters"] == 3
 
 
-def test_nullable_settings_exist() -> None:
-    """Every setting the API lets take null is a key of the composed config."""
+def test_nullable_settings_are_those_typed_optional() -> None:
+    """The API lets null through for the settings whose type admits it, each a key of the
+    composed config, whatever its default; a setting typed without None refuses it."""
     cfg = compose_config()
     for key in api._NULLABLE:
         node = cfg
         for part in key.split("."):
             node = node[part]
-        assert node is not None, key
+    assert {"window.count", "clustering.fit_per_voxel", "clustering.relabel_sigma"} <= api._NULLABLE
+    assert api._fits("window.count", None, 3) and api._fits("clustering.label_tol", None, None)
+    assert not api._fits("clustering.max_iterations", None, 20)
