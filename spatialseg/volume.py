@@ -21,8 +21,10 @@ Design (details in ``docs/volume.md``):
   ``dO/dV = slope V + offset``. Other objectives (or a blur) materialise the blurred volume
   and ``G`` in reused buffers and gather ``G``.
 * The voting pass caches each interior event's cell and fractions; the gather pass reads
-  them instead of warping again. Events are stored sorted by their unwarped voxel, so the
-  passes walk the volume almost sequentially; results come back in the caller's order.
+  them instead of warping again. The P-step keeps them per velocity across calls, since the
+  clustering loop revisits each cluster's velocity with new memberships. Events are stored
+  sorted by their unwarped voxel, so the passes walk the volume almost sequentially;
+  results come back in the caller's order.
 * Coordinates are computed in float64; points, weights, the cache and the volume are stored
   in ``dtype`` (float32 halves their memory, float64 is the more accurate and, on the
   benchmark machine, the faster).
@@ -31,8 +33,10 @@ Design (details in ``docs/volume.md``):
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -164,36 +168,54 @@ def _interpolate(flat, b, sx, sy, fx, fy, fz):
 
 
 @njit(cache=True, fastmath=_FASTMATH)
-def _scatter(points, dt, weights, theta, origin, inv_size, proj, padded, cells, fracs) -> float:
-    """Vote every event into ``padded`` (zero on entry); return the in-grid mass ``sum V``.
-
-    Caches each voting event's cell and fractions in ``cells``/``fracs`` for the passes that
-    follow at the same theta; ``cells[k] = -1`` marks an event to skip (weight 0) or, when its
-    cell touches the border, to re-locate.
-
-    Decision: two loops, locating every event first and then voting, because the first,
-    without the votes' scattered writes, vectorises: a quarter less time than one loop.
-    """
-    flat, shape, sx, sy = _layout(padded)
+def _locate_all(points, dt, theta, origin, inv_size, proj, padded, cells, fracs) -> None:
+    """Cache every event's cell at ``theta`` in ``padded``'s grid: ``cells[k]`` its flat
+    index where all 8 corners are inside, else -1 (outside, or at the border: located again
+    where voted); ``fracs[k]`` its fractions. The weights play no part, so the cache serves
+    any memberships at the same velocity (:meth:`VolumeObjective.p_step`)."""
+    _, shape, sx, sy = _layout(padded)
     for k in range(dt.size):
         inside, b, ax, ay, az = _locate(points, dt, k, theta, origin, inv_size, proj, shape, sx, sy)
         whole = ax[1] * ax[2] * ay[1] * ay[2] * az[1] * az[2] == 1.0  # all 8 corners inside
-        cells[k] = b if inside and whole and weights[k] != 0 else -1
+        cells[k] = b if inside and whole else -1
         fracs[k, 0], fracs[k, 1], fracs[k, 2] = ax[0], ay[0], az[0]
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _vote_located(points, dt, weights, theta, origin, inv_size, proj, padded, cells, fracs):
+    """Vote every weighted event into ``padded`` (zero on entry) from its cached cell
+    (:func:`_locate_all`), the border's events located again; return the in-grid mass."""
+    flat, shape, sx, sy = _layout(padded)
     mass = 0.0
     for k in range(dt.size):
         w = np.float64(weights[k])
+        if w == 0.0:
+            continue
         b = cells[k]
         if b >= 0:
             fx, fy, fz = fracs[k, 0], fracs[k, 1], fracs[k, 2]
             mass += _splat(flat, b, sx, sy, w, (fx, 1.0, 1.0), (fy, 1.0, 1.0), (fz, 1.0, 1.0))
-        elif w != 0.0:
+        else:
             inside, b, ax, ay, az = _locate(
                 points, dt, k, theta, origin, inv_size, proj, shape, sx, sy
             )
             if inside:
                 mass += _splat(flat, b, sx, sy, w, ax[:3], ay[:3], az[:3])
     return mass
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _scatter(points, dt, weights, theta, origin, inv_size, proj, padded, cells, fracs) -> float:
+    """Vote every event into ``padded`` (zero on entry); return the in-grid mass ``sum V``.
+
+    Caches each event's cell and fractions in ``cells``/``fracs`` for the passes that follow
+    at the same theta (:func:`_locate_all`); those passes skip the events of weight 0.
+
+    Decision: two loops, locating every event first and then voting, because the first,
+    without the votes' scattered writes, vectorises: a quarter less time than one loop.
+    """
+    _locate_all(points, dt, theta, origin, inv_size, proj, padded, cells, fracs)
+    return _vote_located(points, dt, weights, theta, origin, inv_size, proj, padded, cells, fracs)
 
 
 @njit(cache=True, fastmath=_FASTMATH)
@@ -204,10 +226,10 @@ def _clear(points, dt, weights, theta, origin, inv_size, proj, padded, cells) ->
         flat[:] = 0
         return
     for k in range(dt.size):
+        if weights[k] == 0:
+            continue
         b = cells[k]
         if b < 0:
-            if weights[k] == 0:
-                continue
             inside, b, _, _, _ = _locate(
                 points, dt, k, theta, origin, inv_size, proj, shape, sx, sy
             )
@@ -227,12 +249,12 @@ def _weighted_sample_sum(
     total = 0.0
     for k in range(dt.size):
         w = np.float64(weights[k])
+        if w == 0.0:
+            continue
         b = cells[k]
         if b >= 0:  # cached cell; kept a separate branch, or LLVM warps every event
             value = _interpolate(flat, b, sx, sy, fracs[k, 0], fracs[k, 1], fracs[k, 2])[0]
         else:
-            if w == 0.0:
-                continue
             inside, b, ax, ay, az = _locate(
                 points, dt, k, theta, origin, inv_size, proj, shape, sx, sy
             )
@@ -256,14 +278,14 @@ def _gather_grad(points, dt, weights, theta, origin, inv_size, proj, padded, cel
     s = ax_ = ay_ = az_ = bx_ = by_ = bz_ = 0.0
     for k in range(dt.size):
         w = np.float64(weights[k])
+        if w == 0.0:
+            continue
         b = cells[k]
         wdt = w * dt[k]
         kx = ky = kz = 1.0
         if b >= 0:  # interior cell: all corners in the grid, mass constant
             fx, fy, fz = fracs[k, 0], fracs[k, 1], fracs[k, 2]
         else:
-            if w == 0.0:
-                continue
             inside, b, ax, ay, az = _locate(
                 points, dt, k, theta, origin, inv_size, proj, shape, sx, sy
             )
@@ -419,6 +441,22 @@ def check_p_step_blur(
         )
 
 
+#: Bytes of located cells one objective keeps for its P-steps (:meth:`VolumeObjective.p_step`):
+#: a few clusters' velocities on the fine and the P-step grid for a fitted window (32 bytes
+#: per event and grid in float64); an objective whose one velocity needs more keeps none.
+LOCATED_BYTES = 1 << 27
+
+
+@dataclass
+class _Located:
+    """Every event's cell and fractions at one velocity on one grid (:func:`_locate_all`),
+    filled by the first vote at that velocity (``ready`` from then on)."""
+
+    cells: np.ndarray
+    fracs: np.ndarray
+    ready: bool = False
+
+
 class VolumeObjective:
     """The objective ``O(V(theta))`` of one cluster's VWE, its gradient, and P-step sampling.
 
@@ -474,6 +512,7 @@ class VolumeObjective:
         self._pstep: tuple | None = None
         self._batch: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._lender: VolumeObjective | None = None  # whose zero volumes it votes into
+        self._located: OrderedDict[tuple, tuple[_Located, _Located]] = OrderedDict()
         if weights is not None:
             self.set_weights(weights)
 
@@ -563,34 +602,52 @@ class VolumeObjective:
             return volume
         return self.objective.smooth(volume, out=self._interior(self._scratch_volumes()[0]))
 
-    @contextmanager
-    def _voted(self, theta: np.ndarray) -> Iterator[tuple[tuple, float]]:
-        """Vote ``V(theta)`` into the buffer; yield the kernel arguments and ``sum V``; clear."""
-        args = self._args(theta)
-        try:
-            yield args, _scatter(*args, self._padded, self._cells, self._fracs)
-        finally:
-            _clear(*args, self._padded, self._cells)
+    def _vote(
+        self, args: tuple, padded: np.ndarray, located: _Located | None
+    ) -> tuple[float, np.ndarray, np.ndarray]:
+        """Vote the events at ``args``' velocity into ``padded`` (zero on entry): the in-grid
+        mass and the cells and fractions the passes after it read, ``located``'s (located
+        at the first vote) or else this objective's own, located anew."""
+        if located is None:
+            return _scatter(*args, padded, self._cells, self._fracs), self._cells, self._fracs
+        if not located.ready:
+            _locate_all(*args[:2], *args[3:], padded, located.cells, located.fracs)
+            located.ready = True
+        mass = _vote_located(*args, padded, located.cells, located.fracs)
+        return mass, located.cells, located.fracs
 
-    def _voted_value(self, args: tuple, mass: float) -> float:
+    @contextmanager
+    def _voted(
+        self, args: tuple, located: _Located | None = None
+    ) -> Iterator[tuple[float, np.ndarray, np.ndarray]]:
+        """Vote ``V(theta)`` (``args``: :meth:`_args`) into the buffer; yield ``sum V`` and
+        the cells and fractions (:meth:`_vote`); clear."""
+        cells = self._cells if located is None else located.cells
+        try:
+            mass, cells, fracs = self._vote(args, self._padded, located)
+            yield mass, cells, fracs
+        finally:
+            _clear(*args, self._padded, cells)
+
+    def _voted_value(self, args: tuple, mass: float, cells: np.ndarray, fracs: np.ndarray) -> float:
         """The objective of the volume now in the buffer (inside :meth:`_voted`)."""
         if self._fused:
-            total_sq = _weighted_sample_sum(*args, self._padded, self._cells, self._fracs)
+            total_sq = _weighted_sample_sum(*args, self._padded, cells, fracs)
             return self.objective.from_moments(mass, total_sq, self.grid.n_voxels)[0]
         return float(self.objective.value(self._smoothed()))
 
     def value(self, theta: np.ndarray) -> float:
         """The objective at ``theta``."""
-        with self._voted(theta) as (args, mass):
-            return self._voted_value(args, mass)
+        args = self._args(theta)
+        with self._voted(args) as voted:
+            return self._voted_value(args, *voted)
 
     def value_and_grad(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         """The objective at ``theta`` and its analytic gradient ``dO/dtheta`` (3,)."""
-        with self._voted(theta) as (args, mass):
+        args = self._args(theta)
+        with self._voted(args) as (mass, cells, fracs):
             if self._fused:
-                total_sq, slopes, mass_slopes = _gather_grad(
-                    *args, self._padded, self._cells, self._fracs
-                )
+                total_sq, slopes, mass_slopes = _gather_grad(*args, self._padded, cells, fracs)
                 value, slope, offset = self.objective.from_moments(
                     mass, total_sq, self.grid.n_voxels
                 )
@@ -601,7 +658,7 @@ class VolumeObjective:
                 blurred = self._scratch_volumes()[0]
                 self.objective.smooth(self._interior(derivative), out=self._interior(blurred))
                 derivative = blurred
-            slopes = _gather_grad(*args, derivative, self._cells, self._fracs)[1]
+            slopes = _gather_grad(*args, derivative, cells, fracs)[1]
             return float(value), -slopes
 
     def grad(self, theta: np.ndarray) -> np.ndarray:
@@ -677,7 +734,7 @@ class VolumeObjective:
 
     def volume(self, theta: np.ndarray) -> np.ndarray:
         """A copy of the raw VWE ``V(theta)`` (before any blur), shape ``grid.shape``."""
-        with self._voted(theta):
+        with self._voted(self._args(theta)):
             return self._interior(self._padded).copy()
 
     def _p_step_buffers(
@@ -732,13 +789,11 @@ class VolumeObjective:
         crowd the border is not diluted there against one in the middle (zero boundaries
         cost 6 % accuracy on a 4,000-event interior window).
         """
-        value, events, grid_args, sampled_from, per_voxel = self._p_step_volume(
+        value, events, grid_args, sampled_from, per_voxel, located = self._p_step_volume(
             theta, sigma, stride
         )
         sampled = np.empty(self.n_events)
-        _sample(
-            *events[:2], *events[3:], *grid_args, sampled_from, self._cells, self._fracs, sampled
-        )
+        _sample(*events[:2], *events[3:], *grid_args, sampled_from, *located, sampled)
         sampled /= per_voxel
         if ordered:
             return sampled, value
@@ -759,39 +814,66 @@ class VolumeObjective:
         ``theta``: a fit's volumes read where the events left out of the fit fall. Equal to
         the P-step of an objective holding both, the others with weight 0, without voting
         or locating the others in it."""
-        _, events, grid_args, sampled_from, per_voxel = self._p_step_volume(theta, sigma, stride)
+        _, events, grid_args, sampled_from, per_voxel, _ = self._p_step_volume(theta, sigma, stride)
         hint = "; drop events without depth first"
         pts = _finite_array("points", points, (None, 3), np.float64, hint).astype(self.dtype)
         times = _finite_array("dt", dt, (len(pts),), np.float64, hint).astype(self.dtype)
-        cells = np.full(len(pts), -1, dtype=self._cells.dtype)  # no cached cells: locate each
+        cells = np.empty(len(pts), dtype=self._cells.dtype)
         fracs = np.empty((len(pts), 3), dtype=self._fracs.dtype)
+        located = (pts, times, events[3], *grid_args, sampled_from, cells, fracs)
+        _locate_all(*located)  # as a P-step's events are: the fractions in the volume's dtype
         sampled = np.empty(len(pts))
-        _sample(pts, times, events[3], *grid_args, sampled_from, cells, fracs, sampled)
+        _sample(*located, sampled)
         return sampled / per_voxel
 
     def _p_step_volume(
         self, theta: np.ndarray, sigma: float | Sequence[float], stride: int
-    ) -> tuple[float, tuple, tuple, np.ndarray, float]:
+    ) -> tuple[float, tuple, tuple, np.ndarray, float, tuple[np.ndarray, np.ndarray]]:
         """Vote ``V(theta)`` on the P-step's grid and smooth it (:meth:`p_step`): the
         objective of ``V(theta)``, the kernels' event arguments, the P-step grid's, the
-        padded smoothed volume, and the fine voxels per P-step voxel. The events' cell cache
-        then holds their cells in that grid."""
+        padded smoothed volume, the fine voxels per P-step voxel, and the events' cells and
+        fractions in the P-step's grid.
+
+        Decision: the loop's P-steps revisit each cluster's velocity with new memberships
+        (the theta-step rarely moves it), so the events are located once per velocity and
+        grid (:meth:`_located_at`) and only voted again: a third of a P-step."""
         coarse, votes, sampled_from, raw, smooth = self._p_step_buffers(stride)
         sigmas, per_voxel = self._p_step_blur(coarse, sigma, stride)
-        with self._voted(theta) as (args, mass):
-            value = self._voted_value(args, mass)
-            if stride == 1:  # the vote is the P-step's; its cell cache stays valid
+        args = self._args(theta)
+        fine_at, coarse_at = self._located_at(args[3], stride)
+        with self._voted(args, fine_at) as (mass, *located):
+            value = self._voted_value(args, mass, *located)
+            if stride == 1:  # the vote is the P-step's, and so are its cells
                 raw[...] = self._interior(self._padded)
         events, grid_args = args[:4], (self._origin, _floats(1.0 / coarse.voxel_size), self._proj)
         if stride > 1:
-            _scatter(*events, *grid_args, votes, self._cells, self._fracs)
+            located = self._vote((*events, *grid_args), votes, coarse_at)[1:]
             try:
                 raw[...] = self._interior(votes)
             finally:
-                _clear(*events, *grid_args, votes, self._cells)
+                _clear(*events, *grid_args, votes, located[0])
         gaussian_smooth(raw, sigmas, out=smooth, work=raw, mode="reflect")
         self._interior(sampled_from)[...] = smooth
-        return value, events, grid_args, sampled_from, per_voxel
+        return value, events, grid_args, sampled_from, per_voxel, tuple(located)
+
+    def _located_at(
+        self, theta: tuple[float, ...], stride: int
+    ) -> tuple[_Located | None, _Located | None]:
+        """The cell caches of the events at ``theta`` on the fine grid and on the P-step's
+        grid of ``stride``, kept from call to call (the least recently used dropped beyond
+        :data:`LOCATED_BYTES`); (None, None) when one velocity's would exceed it."""
+        key = (theta, stride)
+        if key in self._located:
+            self._located.move_to_end(key)
+            return self._located[key]
+        size = 2 * (self._cells.nbytes + self._fracs.nbytes)
+        if size > LOCATED_BYTES:
+            return None, None
+        while (len(self._located) + 1) * size > LOCATED_BYTES:
+            self._located.popitem(last=False)
+        fine, coarse = (_Located(*self._workspace(padded=self._padded)[1:]) for _ in "fc")
+        self._located[key] = (fine, coarse)
+        return fine, coarse
 
     def sample(self, theta: np.ndarray, volume: np.ndarray | None = None) -> np.ndarray:
         """``volume`` (default: the raw ``V(theta)``) interpolated at each warped event (N,).
@@ -800,8 +882,9 @@ class VolumeObjective:
         """
         sampled = np.empty(self.n_events)
         if volume is None:
-            with self._voted(theta) as (args, _):
-                _sample(*args[:2], *args[3:], self._padded, self._cells, self._fracs, sampled)
+            args = self._args(theta)
+            with self._voted(args) as (_, cells, fracs):
+                _sample(*args[:2], *args[3:], self._padded, cells, fracs, sampled)
         else:
             args = self._args(theta)
             padded = self._scratch_volumes()[0]

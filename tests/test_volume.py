@@ -10,6 +10,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from spatialseg import reference as ref
+from spatialseg import volume
 from spatialseg.grid import VoxelGrid
 from spatialseg.objectives import Objective, make_objective, objective_names
 from spatialseg.volume import VolumeObjective, _stable_order, counting_sort
@@ -362,6 +363,34 @@ def test_p_step_stride_is_the_coarse_references(grid, depth_sigma):
         halo = ev._pstep[3].copy()  # the sampled buffer: its inside kept, its halo zero
         halo[1:-1, 1:-1, 1:-1] = 0
         assert ev._pstep[3].any() and not halo.any()
+
+
+@GRIDS
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("budget", [None, 1])
+def test_p_steps_at_revisited_velocities_are_a_fresh_objectives(grid, dtype, budget, monkeypatch):
+    """The loop's P-steps return to each cluster's velocity with new memberships (some 0):
+    the cells located at a velocity's first P-step give, to the bit, what an objective
+    locating them anew gives; also when the kept cells must be dropped (``budget`` entries,
+    the least recently used first) and between the velocities' value calls."""
+    points, dt, _ = _events(500, seed=13, grid=grid)
+    if budget is not None:  # room for ``budget`` velocities' cells
+        monkeypatch.setattr(volume, "LOCATED_BYTES", budget * 64 * 500)
+    rng = np.random.default_rng(14)
+    thetas = [THETA, -THETA, 0.5 * THETA]
+    kept = VolumeObjective(points, dt, grid, "variance", dtype=dtype)
+    for round_ in range(3):
+        for stride in (2, 1):
+            for theta in thetas:
+                w = np.where(rng.random(500) < 0.3, 0.0, rng.random(500))
+                kept.set_weights(w)
+                found = kept.p_step(theta, 1.5, stride)
+                kept.value(theta + 0.1 * round_)  # votes at another velocity between
+                fresh = VolumeObjective(points, dt, grid, "variance", w, dtype)
+                expected = fresh.p_step(theta, 1.5, stride)
+                assert np.array_equal(found[0], expected[0]) and found[1] == expected[1]
+    assert len(kept._located) == (2 * len(thetas) if budget is None else budget)
+    assert not kept._padded.any() and not kept._pstep[2].any()
 
 
 def test_p_step_stride_keeps_the_fine_responses():
