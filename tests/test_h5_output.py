@@ -45,6 +45,7 @@ def _read_h5(path: Path) -> dict[str, Any]:
         found["events.attrs"] = dict(f["events"].attrs)
         found["units"] = f["objects/velocity"].attrs["units"]
         found["filters"] = {(d.compression, d.shuffle) for d in (f["events/t"], f["labels"])}
+        found["probabilities.filters"] = f["probabilities"].compression
     return found
 
 
@@ -72,7 +73,7 @@ def _check_h5(out: Path, events: EventStream) -> dict[str, Any]:
     assert attrs["n_events"] == len(events) == len(labels) and attrs["n_objects"] == n_objects
     assert attrs["scene"] == result["scene"]
     assert attrs["spatialseg_version"] == spatialseg.__version__
-    assert h5["filters"] == {("gzip", True)}
+    assert h5["filters"] == {("gzip", True)} and h5["probabilities.filters"] is None
     assert not [p.name for p in out.glob(".*") if p.name != ".hydra"]
     return json.loads(attrs["settings"])
 
