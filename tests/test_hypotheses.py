@@ -181,11 +181,14 @@ def test_a_groups_own_objective_equals_a_volume_of_its_events_and_leaves_the_sha
         alone = VolumeObjective(points[in_tiles][mine], dt[in_tiles][mine], grid, "variance")
         alone.set_weights(weights[mine])
         part = one.group(tile)
+        assert np.array_equal(part.order, alone.order)
         assert np.array_equal(part.batch_value(velocities), alone.batch_value(velocities))
         assert part.value(velocities[1]) == alone.value(velocities[1])
         value, grad = part.value_and_grad(velocities[2])
         assert value == alone.value_and_grad(velocities[2])[0]
         assert np.array_equal(grad, alone.grad(velocities[2]))
+        found, expected = part.p_step(velocities[3], 1.5, 2), alone.p_step(velocities[3], 1.5, 2)
+        assert np.array_equal(found[0], expected[0]) and found[1] == expected[1]
     after = one.batch_value(velocities), one.value_and_grad(velocities[0])
     assert np.array_equal(after[0], before[0]) and after[1][0] == before[1][0]
     with pytest.raises(ValueError, match=r"group must be in \[0, "):
