@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import optimizers
+from spatialseg import mrf
 from spatialseg.grid import VoxelGrid
 from spatialseg.metrics import segmentation_metrics
 from spatialseg.mrf import (
@@ -57,6 +58,21 @@ def test_two_labels_reach_the_minimum_and_more_stay_within_twice_it(seed):
             assert found == pytest.approx(best)
         else:
             assert found <= 2 * best + 1e-9
+
+
+@pytest.mark.parametrize("weight", [0.3, 1.0, 3.0, 10.0])
+def test_two_labels_take_one_cut_to_the_minimum(weight, monkeypatch):
+    """Two labels: the brute-force minimum on 12 events, weak to strong smoothing, from one
+    minimum cut (no expansion)."""
+    rng = np.random.default_rng(int(weight * 10))
+    points = rng.uniform(0, 3, (12, 3))
+    first, second = neighbour_pairs(points, k=4)
+    p = rng.dirichlet(np.full(2, 0.7), size=12)
+    monkeypatch.setattr(mrf, "_expand", None)  # an expansion would fail
+    labels = potts_labels(p, first, second, weight)
+    assert _energy(p, labels, first, second, weight) == pytest.approx(
+        _brute_force(p, first, second, weight)
+    )
 
 
 @pytest.mark.parametrize("k", [2, 3, 4])
