@@ -869,8 +869,10 @@ class VolumeObjective:
         self, theta: tuple[float, ...], stride: int
     ) -> tuple[_Located | None, _Located | None]:
         """The cell caches of the events at ``theta`` on the fine grid and on the P-step's
-        grid of ``stride``, kept from call to call (the least recently used dropped beyond
-        :data:`LOCATED_BYTES`); (None, None) when one velocity's would exceed it."""
+        grid of ``stride``, kept from call to call: beyond :data:`LOCATED_BYTES` the least
+        recently used velocity's arrays are taken over (more velocities than fit cost a
+        locating each, as without the cache, and no new memory); (None, None) when one
+        velocity's would exceed it."""
         key = (theta, stride)
         if key in self._located:
             self._located.move_to_end(key)
@@ -878,11 +880,15 @@ class VolumeObjective:
         size = 2 * (self._cells.nbytes + self._fracs.nbytes)
         if size > LOCATED_BYTES:
             return None, None
+        taken = None
         while (len(self._located) + 1) * size > LOCATED_BYTES:
-            self._located.popitem(last=False)
-        fine, coarse = (_Located(*self._workspace(padded=self._padded)[1:]) for _ in "fc")
-        self._located[key] = (fine, coarse)
-        return fine, coarse
+            taken = self._located.popitem(last=False)[1]
+        if taken is None:
+            entry = tuple(_Located(*self._workspace(padded=self._padded)[1:]) for _ in "fc")
+        else:
+            entry = tuple(_Located(old.cells, old.fracs) for old in taken)
+        self._located[key] = entry
+        return entry
 
     def sample(self, theta: np.ndarray, volume: np.ndarray | None = None) -> np.ndarray:
         """``volume`` (default: the raw ``V(theta)``) interpolated at each warped event (N,).

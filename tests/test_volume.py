@@ -372,13 +372,15 @@ def test_p_steps_at_revisited_velocities_are_a_fresh_objectives(grid, dtype, bud
     """The loop's P-steps return to each cluster's velocity with new memberships (some 0):
     the cells located at a velocity's first P-step give, to the bit, what an objective
     locating them anew gives; also when the kept cells must be dropped (``budget`` entries,
-    the least recently used first) and between the velocities' value calls."""
+    the least recently used taken over) and between the velocities' value calls."""
     points, dt, _ = _events(500, seed=13, grid=grid)
     if budget is not None:  # room for ``budget`` velocities' cells
         monkeypatch.setattr(volume, "LOCATED_BYTES", budget * 64 * 500)
     rng = np.random.default_rng(14)
     thetas = [THETA, -THETA, 0.5 * THETA]
     kept = VolumeObjective(points, dt, grid, "variance", dtype=dtype)
+    kept.p_step(THETA, 1.5, 2)
+    first = [e.cells for e in next(iter(kept._located.values()))]
     for round_ in range(3):
         for stride in (2, 1):
             for theta in thetas:
@@ -390,6 +392,9 @@ def test_p_steps_at_revisited_velocities_are_a_fresh_objectives(grid, dtype, bud
                 expected = fresh.p_step(theta, 1.5, stride)
                 assert np.array_equal(found[0], expected[0]) and found[1] == expected[1]
     assert len(kept._located) == (2 * len(thetas) if budget is None else budget)
+    if budget == 1:  # the first velocity's arrays, taken over by every other
+        now = [e.cells for e in next(iter(kept._located.values()))]
+        assert all(a is b for a, b in zip(now, first, strict=True))
     assert not kept._padded.any() and not kept._pstep[2].any()
 
 
