@@ -829,10 +829,10 @@ class VolumeObjective:
         times = _finite_array("dt", dt, (len(pts),), np.float64, hint).astype(self.dtype)
         cells = np.empty(len(pts), dtype=self._cells.dtype)
         fracs = np.empty((len(pts), 3), dtype=self._fracs.dtype)
-        located = (pts, times, events[3], *grid_args, sampled_from, cells, fracs)
-        _locate_all(*located)  # as a P-step's events are: the fractions in the volume's dtype
+        others = (pts, times, events[3], *grid_args, sampled_from, cells, fracs)
+        _locate_all(*others)  # as a P-step's events are: the fractions in the volume's dtype
         sampled = np.empty(len(pts))
-        _sample(*located, sampled)
+        _sample(*others, sampled)
         return sampled / per_voxel
 
     def _p_step_volume(
