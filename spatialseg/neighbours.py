@@ -22,7 +22,7 @@ from scipy import ndimage
 
 from spatialseg.volume import counting_sort
 
-__all__ = ["agreeing_labels", "nearest_neighbours"]
+__all__ = ["agreeing_labels", "grid_order", "nearest_neighbours"]
 
 #: Points per cell on average over the points' bounding box: fewer cells to visit against
 #: fewer points per cell (0.5-1.5 within 5 % of each other on 15,000-1,000,000 events; 3
@@ -51,8 +51,7 @@ def nearest_neighbours(points: np.ndarray, k: int, queries: np.ndarray | None = 
     if not 1 <= k <= top:
         raise ValueError(f"k must be at least 1 and at most {top} (of {n} points), got {k}")
     lo, size, shape = _grid(points)
-    # the points grouped by cell, each cell's in index order, and where each cell's run starts
-    order, starts = counting_sort(_cells_of(points, lo, size, shape), int(np.prod(shape)))
+    order, starts = _grouped(points, lo, size, shape)
     grouped = points[order]
     if queries is None:
         margin = ROUNDING * (float(np.abs(points).max()) + size)
@@ -64,6 +63,20 @@ def nearest_neighbours(points: np.ndarray, k: int, queries: np.ndarray | None = 
     margin = ROUNDING * (reach + size)
     own = np.full(len(asked), -1, np.int64)  # a query is none of the points
     return _search(grouped, order, starts, asked, own, k, lo, size, shape, margin)
+
+
+def grid_order(points: np.ndarray) -> np.ndarray:
+    """The indices of ``points`` (N x 3, finite) grouped by the cells of
+    :func:`nearest_neighbours`' grid, in the cells' order: near points near in the order.
+
+    Why: numbered in this order, a graph over the points' neighbours keeps each node's
+    neighbours close in memory, and the minimum cuts of :mod:`spatialseg.mrf` ran 30-45 %
+    faster than in the events' time order, with the same labels (docs/performance.md,
+    session 57)."""
+    points = _finite(points, "points")
+    if len(points) == 0:
+        return np.zeros(0, np.intp)
+    return _grouped(points, *_grid(points))[0]
 
 
 def agreeing_labels(
@@ -110,6 +123,14 @@ def _grid(points: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     lo = points.min(axis=0)
     size, shape = _cells(points.max(axis=0) - lo, len(points))
     return lo, size, shape
+
+
+def _grouped(
+    points: np.ndarray, lo: np.ndarray, size: float, shape: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The points grouped by cell (each cell's in index order) and where each cell's run
+    starts in that order."""
+    return counting_sort(_cells_of(points, lo, size, shape), int(np.prod(shape)))
 
 
 def _finite(points: np.ndarray, name: str) -> np.ndarray:

@@ -34,6 +34,7 @@ from spatialseg.clustering import (
 )
 from spatialseg.depth import make_depth_source
 from spatialseg.grid import project_jacobian
+from spatialseg.neighbours import grid_order
 from spatialseg.points import (
     ModelEvaluator,
     Prepared,
@@ -628,12 +629,14 @@ def smoothed_labels(
     if prepared.unsampled is not None:
         joint = ~prepared.unsampled[index]
         joint |= np.count_nonzero(joint) < 2  # too few fitted events to hold: all jointly
-    core, others, weight = index[joint], index[~joint], clustering.smoothness
-    first, second = mrf.neighbour_pairs(where[joint])
+    fitted = np.flatnonzero(joint)
+    fitted = fitted[grid_order(where[fitted])]  # the cuts' graph numbered near to near
+    core, others, weight = index[fitted], index[~joint], clustering.smoothness
+    first, second = mrf.neighbour_pairs(where[fitted])
     smoothed = labels.copy()
     smoothed[core] = mrf.potts_labels(probabilities[core], first, second, weight)
     smoothed[others] = mrf.conditional_labels(
-        probabilities[others], where[~joint], where[joint], smoothed[core], weight
+        probabilities[others], where[~joint], where[fitted], smoothed[core], weight
     )
     return smoothed
 

@@ -22,7 +22,7 @@ from spatialseg.mrf import (
     potts_labels,
     space_time,
 )
-from spatialseg.neighbours import agreeing_labels
+from spatialseg.neighbours import agreeing_labels, grid_order
 from spatialseg.points import Prepared
 from spatialseg.recording import Camera
 from spatialseg.scenes import load_scene
@@ -267,3 +267,20 @@ def test_the_image_speed_is_the_flow_of_the_likeliest_motion():
     assert image_speed(spatial, thetas, p, camera) == pytest.approx(50.0)
     planar = replace(spatial, dim=2, units="px/s")
     assert image_speed(planar, np.array([[3.0, 4.0], [0.0, 1.0]]), p[[0, 0]], camera) == 5.0
+
+
+@pytest.mark.parametrize("k", [2, 3])
+def test_the_labels_do_not_depend_on_how_the_events_are_numbered(k):
+    """Numbered in grid order (as the window's smoothing does) or in time order, the same
+    events with the same memberships get the same labels."""
+    rng = np.random.default_rng(11)
+    points = np.column_stack([rng.uniform(0, 60, (3000, 2)), rng.uniform(0, 20, 3000)])
+    p = rng.dirichlet(np.ones(k), 3000)
+    p[points[:, 0] < 30, 0] += 1.0  # a blob leaning to label 0, the rest mixed
+    p /= p.sum(axis=1, keepdims=True)
+    plain = potts_labels(p, *neighbour_pairs(points), 1.0)
+    order = grid_order(points)
+    renumbered = np.empty_like(plain)
+    renumbered[order] = potts_labels(p[order], *neighbour_pairs(points[order]), 1.0)
+    assert np.array_equal(renumbered, plain)
+    assert 0 < np.mean(plain != p.argmax(axis=1)) < 0.5  # the smoothing did change labels

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from spatialseg.neighbours import agreeing_labels, nearest_neighbours
+from spatialseg.neighbours import agreeing_labels, grid_order, nearest_neighbours
 
 
 def _brute_force(points: np.ndarray, k: int, queries: np.ndarray | None = None) -> np.ndarray:
@@ -133,3 +133,20 @@ def test_a_label_said_to_agree_is_every_nearest_points_label(layout):
     assert named.mean() > 0.3 and agreed[-1] == -1
     with pytest.raises(ValueError, match="one label >= 0 per point"):
         agreeing_labels(points, -labels - 1, 8, queries)
+
+
+def test_the_grid_order_is_a_permutation_that_keeps_near_points_together():
+    """Every point once; consecutive points in the order are far nearer than in the events'
+    own (random) order; no points, no order."""
+    rng = np.random.default_rng(5)
+    points = _clustered(rng, 5000)
+    order = grid_order(points)
+    assert np.array_equal(np.sort(order), np.arange(len(points)))
+
+    def step(ordered: np.ndarray) -> float:
+        return float(np.median(np.linalg.norm(np.diff(ordered, axis=0), axis=1)))
+
+    assert step(points[order]) < step(points) / 3
+    assert grid_order(np.zeros((0, 3))).shape == (0,)
+    with pytest.raises(ValueError, match="finite"):
+        grid_order(np.array([[0.0, np.nan, 1.0]]))
