@@ -5,8 +5,16 @@ The Python API (:mod:`spatialseg.api`): :func:`simulate` or :func:`read` a Recor
 every setting of the method with its default (:mod:`spatialseg.settings`).
 """
 
+import os
 from importlib import import_module
 from typing import TYPE_CHECKING, Any
+
+# Decision: the kernels' OpenMP threads sleep while they wait for work, unless the
+# environment chooses: spinning, they starve any other process on the cores (a second job,
+# a browser), and a 15,000-event window took 0.23 s alone but 1.7 s beside one busy core,
+# 0.28 s asleep (docs/performance.md, session 57). Set before numba's OpenMP starts.
+if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
+    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 from spatialseg.events import EventStream
 from spatialseg.recording import Camera, DepthMap, GroundTruth, Keyframe, Recording

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import importlib
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -66,6 +67,26 @@ def _loaded_before_and_after(first: str, module: str, then: str) -> list[str]:
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     return done.stdout.split()
+
+
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [
+        ({}, "PASSIVE"),  # not chosen: the threads sleep while they wait
+        ({"OMP_WAIT_POLICY": "active"}, "active"),  # the user's choice is kept
+        ({"GOMP_SPINCOUNT": "300000"}, None),  # a spin count chosen: no policy added
+    ],
+)
+def test_the_kernels_threads_wait_asleep_unless_the_environment_chooses(given, expected):
+    """``import spatialseg`` sets ``OMP_WAIT_POLICY=PASSIVE`` only where neither it nor
+    GNU OpenMP's ``GOMP_SPINCOUNT`` is set, before numba's OpenMP threads start."""
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    code = "import os, spatialseg; print(os.environ.get('OMP_WAIT_POLICY'))"
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env={**env, **given}
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [str(expected)]
 
 
 def test_importing_the_package_leaves_the_renderer_unloaded() -> None:
