@@ -320,6 +320,19 @@ def outside_limit(row: Mapping[str, Any]) -> float | None:
     return 1.5 if row["events"] == 65_000 else None
 
 
+#: The segmentation's stages (result.json's timing keys), in the order the table lists
+#: their passes; any other stage is counted as "other".
+STAGES = ("prepare", "init", "cluster", "refit", "label", "smooth")
+
+
+def stage_passes(row: Mapping[str, Any]) -> list[float]:
+    """Each of :data:`STAGES`' passes (its seconds over one pass's, as the row's passes),
+    then every other stage's together: where a row's passes go."""
+    stages, pass_s = row["stages_s"], row["pass_s"]
+    other = sum(v for k, v in stages.items() if k not in STAGES)
+    return [stages.get(k, 0.0) / pass_s for k in STAGES] + [other / pass_s]
+
+
 #: Issue #27's targets: name, the row's measurement it bounds, the row's limit (or None).
 TARGETS: tuple[tuple[str, str, Callable[[Mapping[str, Any]], float | None]], ...] = (
     ("passes", "passes", pass_limit),
@@ -356,6 +369,7 @@ COLUMNS = (
     ("pass (ms)", "---:"),
     ("passes", "---:"),
     ("passes target", "---"),
+    ("passes: prepare / starts / loops / refit / label / smoothing / other", "---:"),
     ("wall, tracking off (s)", "---:"),
     ("wall, tracking on (s)", "---:"),
     ("tracking on target", "---"),
@@ -395,6 +409,7 @@ def format_row(row: Mapping[str, Any], first_cluster_s: float) -> str:
         f"{row['pass_s'] * 1e3:.2f}",
         f"{row['passes']:.0f}",
         format_target(row, "passes"),
+        " / ".join(f"{p:.0f}" for p in stage_passes(row)),
         f"{row['wall_median_s']:.2f}",
         f"{row['wall_tracking_median_s']:.2f}",
         format_target(row, "tracking"),

@@ -146,6 +146,10 @@ def _row(**changes: Any) -> dict[str, Any]:
         "prepare_s": 0.2,
         "init_s": 0.3,
         "cluster_s": 1.2,
+        "stages_s": {
+            **{"prepare": 0.2, "init": 0.3, "cluster": 1.2},
+            **{"refit": 0.05, "label": 0.05, "smooth": 0.15, "relabel": 0.05},
+        },
         "evaluations": 600,
         "iterations": 10,
         "accuracy": 0.99,
@@ -190,6 +194,14 @@ def test_targets_apply_where_issue_27_sets_them(
     assert {name: (t["limit"], t["met"]) for name, t in targets.items()} == expected
 
 
+def test_the_passes_by_stage_add_up_to_the_rows_passes() -> None:
+    """Each stage's seconds over one pass's, the stages the table does not name as one."""
+    parts = bench.stage_passes(_row())
+    assert len(parts) == len(bench.STAGES) + 1
+    assert sum(parts) == pytest.approx(40.0)
+    assert parts[-1] == pytest.approx(1.0)  # relabel: 0.05 s over a 0.05 s pass
+
+
 def test_table_line_states_the_ratio_and_the_targets() -> None:
     """A line has a cell per column: the passes, each target's limit with yes/no or '-'."""
     line = bench.format_row(_row(events=1_000_000, passes=52.4, cluster_s=1.5), 1.2)
@@ -205,6 +217,8 @@ def test_table_line_states_the_ratio_and_the_targets() -> None:
     assert column["clustering vs first"] == "1.25"
     assert column["pass (ms)"] == "50.00"
     assert column["peak RSS off / on (MB)"] == "400 / 450"
+    by_stage = column["passes: prepare / starts / loops / refit / label / smoothing / other"]
+    assert by_stage == "4 / 6 / 24 / 1 / 1 / 3 / 1"
     assert len(bench.ALIGN.split("|")) == len(bench.HEADER.split("|"))
 
 
