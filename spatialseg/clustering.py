@@ -47,6 +47,7 @@ __all__ = [
     "p_step",
     "p_step_from_every_event",
     "repaired_memberships",
+    "squarem_step",
     "update_memberships",
     "weak_cluster",
 ]
@@ -424,7 +425,15 @@ def iterative_clustering(
     ``step`` replaces the theta-step (``optimizer`` with ``evals_per_step`` on
     ``evaluator``), e.g. to optimise on a subset of the events; the P-step and the recorded
     contrasts always use ``evaluator``, every event. After ``rules.patience`` theta-steps in
-    a row that moved no velocity the velocities stay fixed and each iteration is a P-step.
+    a row that moved no velocity the velocities stay fixed and each iteration is a P-step;
+    every second such P-step is extrapolated (:func:`squarem_step`).
+
+    Decision: at fixed velocities the P-steps are a fixed-point iteration that hardens the
+    memberships slowly (the total contrast still rose by 0.5 % a step at the twentieth),
+    and the hardening carries the accuracy: 10 plain iterations lost 0.013 on the dev
+    split, 40 gained 0.003. SQUAREM, the standard accelerator of EM's fixed points, gets
+    further in 10 iterations than 20 plain ones: 0.903 -> 0.914 in 0.74x the time
+    (docs/performance.md, session 57).
     """
     step = step or StepStage(evaluator, optimizer, evals_per_step)
     thetas = np.array(init_thetas, dtype=np.float64, copy=True)
@@ -444,6 +453,7 @@ def iterative_clustering(
     labels = p.argmax(axis=1)
     reason = ""
     still = 0  # theta-steps in a row that moved no velocity
+    steps: list[np.ndarray] = []  # the memberships two P-steps at fixed velocities began from
     for it in range(rules.max_iterations):
         start = time.perf_counter()
         evals = 0
@@ -451,10 +461,18 @@ def iterative_clustering(
             before = thetas.copy()
             evals = _theta_step(step, rows, thetas, p, bounds, seeds[it])
             still = still + 1 if np.array_equal(thetas, before) else 0
+        fixed = still >= rules.patience and evals == 0  # a P-step at fixed velocities
+        if not fixed:
+            steps = []
         responses, values = cluster_responses(
             evaluator, thetas, p, p_step_sigma, p_step_stride, ordered=True
         )
+        if fixed:
+            steps.append(p)
         p = update_memberships(responses)
+        if len(steps) == 2:
+            p = squarem_step(steps[0], steps[1], p)
+            steps = []
         previous, labels = labels, p.argmax(axis=1)
         changed = float(np.mean(labels != previous)) if n_events else 0.0
         elapsed = time.perf_counter() - start
@@ -471,6 +489,22 @@ def iterative_clustering(
     memberships = np.empty_like(p)
     memberships[order] = p
     return ClusteringResult(thetas, memberships, values.copy(), history, converged, reason)
+
+
+def squarem_step(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
+    """The memberships (N x K) that SQUAREM extrapolates from two steps ``p0 -> p1 -> p2``
+    of a fixed-point iteration (Varadhan and Roland, 2008, scheme S3: step length
+    ``|r| / |v|``, at least 1), each row floored at 1e-12 and normalised back onto the
+    simplex; ``p2`` when the two steps are equal."""
+    r = p1 - p0
+    v = p2 - p1 - r
+    curvature = float(np.linalg.norm(v))
+    if curvature == 0.0:
+        return p2
+    alpha = min(-float(np.linalg.norm(r)) / curvature, -1.0)
+    q = p0 - 2.0 * alpha * r + alpha * alpha * v
+    np.clip(q, 1e-12, 1.0, out=q)
+    return q / q.sum(axis=1, keepdims=True)
 
 
 #: A cluster that is the likeliest for under this share of the events is empty (mean

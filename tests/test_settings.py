@@ -29,7 +29,7 @@ def test_a_partial_mapping_overrides_only_its_keys():
     settings = settings_from({"clustering": {"refit": {"evals": 0}}, "model": {"name": "planar"}})
     assert settings.clustering.refit.evals == 0
     assert settings.clustering.refit.optimizer == "nlopt_bobyqa"
-    assert settings.clustering.max_iterations == 20
+    assert settings.clustering.max_iterations == 10
     assert settings.model.voxel_scale == 1.0 and Settings().model.voxel_scale == 2.0
 
 
