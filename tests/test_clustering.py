@@ -21,6 +21,7 @@ from spatialseg.clustering import (
     iterative_clustering,
     p_step,
     repaired_memberships,
+    squarem_step,
     update_memberships,
 )
 from spatialseg.config import conf_dir
@@ -273,3 +274,28 @@ def test_the_theta_steps_rows_are_its_events_in_its_own_order(subset):
     rows = _step_rows(step, order)
     expected = memberships[subset][step.evaluator.order]
     assert np.array_equal(memberships[order][rows], expected)
+
+
+def test_squarem_lands_on_the_fixed_point_of_a_uniform_contraction():
+    """For ``F(p) = p* + c (p - p*)`` two steps determine ``p*``, and SQUAREM's extrapolation
+    returns it exactly, where a third plain step is still ``c^3`` of the way off."""
+    rng = np.random.default_rng(4)
+    target = rng.dirichlet(np.ones(3), 200)
+    p0 = rng.dirichlet(np.ones(3), 200)
+    step = lambda p: target + 0.8 * (p - target)  # noqa: E731
+    p1, p2 = step(p0), step(step(p0))
+    assert np.allclose(squarem_step(p0, p1, p2), target, atol=1e-12)
+    assert np.abs(step(p2) - target).max() > 0.1 * np.abs(p0 - target).max()
+    assert squarem_step(p0, p0, p0) is p0  # no movement: nothing to extrapolate
+
+
+def test_squarem_keeps_every_row_on_the_simplex():
+    """An extrapolation that overshoots is floored and renormalised: memberships stay
+    probabilities."""
+    rng = np.random.default_rng(5)
+    p0, p1, p2 = (rng.dirichlet(np.ones(4), 300) for _ in range(3))
+    q = squarem_step(p0, p1, p2)
+    assert np.all(q > 0) and np.allclose(q.sum(axis=1), 1.0)
+    r, v = p1 - p0, p2 - 2 * p1 + p0
+    alpha = min(-np.linalg.norm(r) / np.linalg.norm(v), -1.0)
+    assert np.any(p0 - 2 * alpha * r + alpha**2 * v < 0)  # unfloored, it left the simplex
