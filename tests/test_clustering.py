@@ -290,12 +290,16 @@ def test_squarem_lands_on_the_fixed_point_of_a_uniform_contraction():
 
 
 def test_squarem_keeps_every_row_on_the_simplex():
-    """An extrapolation that overshoots is floored and renormalised: memberships stay
-    probabilities."""
+    """An extrapolation that overshoots (steps of 0.3 then 0.15 towards label 0: the
+    unfloored step lands at 1.1 and -0.1) is floored and renormalised: memberships stay
+    probabilities, here the hard label the steps head for."""
+    p0 = np.tile([0.5, 0.5], (5, 1))
+    p1 = np.tile([0.8, 0.2], (5, 1))
+    p2 = np.tile([0.95, 0.05], (5, 1))
+    q = squarem_step(p0, p1, p2)
+    assert np.all(q > 0) and np.allclose(q.sum(axis=1), 1.0)
+    assert np.allclose(q, [1.0, 0.0], atol=1e-9)
     rng = np.random.default_rng(5)
     p0, p1, p2 = (rng.dirichlet(np.ones(4), 300) for _ in range(3))
     q = squarem_step(p0, p1, p2)
     assert np.all(q > 0) and np.allclose(q.sum(axis=1), 1.0)
-    r, v = p1 - p0, p2 - 2 * p1 + p0
-    alpha = min(-np.linalg.norm(r) / np.linalg.norm(v), -1.0)
-    assert np.any(p0 - 2 * alpha * r + alpha**2 * v < 0)  # unfloored, it left the simplex
