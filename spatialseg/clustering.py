@@ -498,13 +498,20 @@ def squarem_step(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
     simplex; ``p2`` when the two steps are equal."""
     r = p1 - p0
     v = p2 - p1 - r
-    curvature = float(np.linalg.norm(v))
+    curvature = _norm(v)
     if curvature == 0.0:
         return p2
-    alpha = min(-float(np.linalg.norm(r)) / curvature, -1.0)
+    alpha = min(-_norm(r) / curvature, -1.0)
     q = p0 - 2.0 * alpha * r + alpha * alpha * v
     np.clip(q, 1e-12, 1.0, out=q)
     return q / q.sum(axis=1, keepdims=True)
+
+
+def _norm(a: np.ndarray) -> float:
+    """The Euclidean norm of all of ``a``'s entries, summed by numpy, not BLAS: the same
+    to the bit whatever BLAS's thread count (``np.linalg.norm``'s dot product was not, and
+    the step length passes the difference on)."""
+    return float(np.sqrt(np.sum(a * a)))
 
 
 #: A cluster that is the likeliest for under this share of the events is empty (mean
