@@ -461,13 +461,10 @@ def iterative_clustering(
             before = thetas.copy()
             evals = _theta_step(step, rows, thetas, p, bounds, seeds[it])
             still = still + 1 if np.array_equal(thetas, before) else 0
-        fixed = still >= rules.patience and evals == 0  # a P-step at fixed velocities
-        if not fixed:
-            steps = []
         responses, values = cluster_responses(
             evaluator, thetas, p, p_step_sigma, p_step_stride, ordered=True
         )
-        if fixed:
+        if still >= rules.patience and evals == 0:  # a P-step at velocities fixed for good
             steps.append(p)
         p = update_memberships(responses)
         if len(steps) == 2:
