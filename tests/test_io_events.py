@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 import spatialseg.io._events as io_events
+import spatialseg.io._text as text_io
 from spatialseg.events import EventStream
-from spatialseg.io import read_events, write_events
+from spatialseg.io import iter_event_chunks, read_events, write_events
 
 W, H = 6, 4
 
@@ -92,6 +93,90 @@ def test_malformed_txt_names_file_and_line(
     path.write_text("# header comment, so line numbers differ from event indices\n" + body)
     with pytest.raises(ValueError, match=re.escape(f"{path} line {line}: {message}")):
         read_events(path, width=W, height=H)
+
+
+@pytest.fixture
+def arrow_chunks(monkeypatch: pytest.MonkeyPatch) -> list[bool]:
+    """Every text chunk (of about 256 bytes) offered to Arrow; records whether Arrow took it."""
+    taken: list[bool] = []
+    parse = text_io._arrow_columns
+
+    def spy(chunk: bytes) -> tuple[np.ndarray, ...] | None:
+        columns = parse(chunk)
+        taken.append(columns is not None)
+        return columns
+
+    monkeypatch.setattr(text_io, "_arrow_columns", spy)
+    monkeypatch.setattr(text_io, "_ARROW_BYTES", 1)
+    monkeypatch.setattr(text_io, "_CHUNK_BYTES", 256)
+    return taken
+
+
+def test_arrow_reads_the_bits_loadtxt_reads(tmp_path: Path, arrow_chunks: list[bool]) -> None:
+    """Times in every notation a writer uses (shortest repr, fixed decimals, exponents,
+    integers), chunked, read bit-exact against ``np.loadtxt``; blocks as asked."""
+    rng = np.random.default_rng(3)
+    values = np.concatenate([rng.uniform(0, 3, 300), 10.0 ** rng.uniform(-9, 2, 300)]).tolist()
+    notations = ["{!r}", "{:.9f}", "{:.17e}", "{:.3g}", "{:.0f}"]
+    times = sorted((notations[i % 5].format(v) for i, v in enumerate(values)), key=float)
+    lines = [f"{t} {i % W} {i % H} {i % 2}" for i, t in enumerate(times)]
+    path = tmp_path / "events.txt"
+    path.write_text("\n".join(lines))  # the last line without its newline
+    expected = np.loadtxt(path)
+    events = read_events(path, width=W, height=H)
+    assert len(arrow_chunks) > 10 and all(arrow_chunks)
+    np.testing.assert_array_equal(events.t, expected[:, 0])
+    np.testing.assert_array_equal(events.x, expected[:, 1])
+    np.testing.assert_array_equal(events.p, np.where(expected[:, 3] > 0, 1, -1))
+    chunks = list(iter_event_chunks(path, 100, width=W, height=H))
+    assert [len(c) for c in chunks] == [100] * 6
+    np.testing.assert_array_equal(np.concatenate([c.t for c in chunks]), events.t)
+
+
+@pytest.mark.parametrize(
+    "odd",
+    ["0.2  1 2 1", "", "0.2 1 2 1 # c", "0.2\t1 2 1", "0.2 1 2 1\r", "0.2 1 2 1 ", " 0.2 1 2 1"],
+)
+def test_arrow_leaves_comments_and_odd_spacing_to_loadtxt(
+    tmp_path: Path, arrow_chunks: list[bool], odd: str
+) -> None:
+    """A chunk Arrow declines (or would number wrongly) is read by ``np.loadtxt``."""
+    path = tmp_path / "events.txt"
+    path.write_text(f"0.1 1 2 0\n{odd}\n0.3 1 2 1\n")
+    events = read_events(path, width=W, height=H)
+    assert arrow_chunks == [False]
+    kept = [0.1, 0.3] if odd == "" else [0.1, 0.2, 0.3]
+    np.testing.assert_array_equal(events.t, kept)
+    np.testing.assert_array_equal(events.p, [-1] + [1] * (len(kept) - 1))
+
+
+@pytest.mark.parametrize(("body", "line", "message"), BAD_TXT)
+def test_arrow_chunks_name_the_bad_line(
+    tmp_path: Path, arrow_chunks: list[bool], body: str, line: int, message: str
+) -> None:
+    """The same messages when the bad line lies in a later chunk than the first."""
+    good = "".join(f"{i * 1e-4!r} 1 2 1\n" for i in range(1, 61))
+    path = tmp_path / "events.txt"
+    path.write_text(good + body)
+    moved = message.replace("line 2 has", "line 61 has")  # 60 lines before the body, not one
+    with pytest.raises(ValueError, match=re.escape(f"{path} line {line + 59}: {moved}")):
+        read_events(path, width=W, height=H)
+    assert arrow_chunks[0]
+
+
+def test_arrow_chunks_name_the_line_of_the_first_polarity(
+    tmp_path: Path, arrow_chunks: list[bool]
+) -> None:
+    """A polarity mix across chunks names both lines (the first 0 inside a later chunk)."""
+    p = ["1"] * 40
+    p[16], p[34] = "0", "-1"
+    path = tmp_path / "events.txt"
+    path.write_text("".join(f"{i * 1e-4!r} 1 2 {v}\n" for i, v in enumerate(p)))
+    with pytest.raises(
+        ValueError, match=re.escape(f"{path} line 35: polarity -1 but line 17 has 0")
+    ):
+        read_events(path, width=W, height=H)
+    assert arrow_chunks[:2] == [True, True]
 
 
 def test_binary_garbage_in_txt_names_the_line(tmp_path: Path) -> None:

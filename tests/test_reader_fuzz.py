@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import spatialseg.io._text as text_io
 from spatialseg.events import EventStream
 from spatialseg.io import (
     iter_event_chunks,
@@ -219,6 +220,17 @@ def fuzz(name: str, folder: Path) -> Counter[str]:
 def test_damaged_files_read_or_fail_in_one_line(tmp_path: Path, name: str) -> None:
     counts = fuzz(name, tmp_path)
     assert counts.total() == 2 * FORMATS[name][2]
+    assert counts["ValueError"] > counts.total() / 3, counts  # the mutations do damage
+
+
+def test_damaged_text_read_by_arrow_or_fail_in_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The text reader's Arrow path (chunks of 64 bytes, every one offered to Arrow)."""
+    monkeypatch.setattr(text_io, "_ARROW_BYTES", 1)
+    monkeypatch.setattr(text_io, "_CHUNK_BYTES", 64)
+    counts = fuzz("txt", tmp_path)
+    assert counts.total() == 2 * FORMATS["txt"][2]
     assert counts["ValueError"] > counts.total() / 3, counts  # the mutations do damage
 
 

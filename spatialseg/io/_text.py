@@ -2,17 +2,22 @@
 ``t path`` listings (``depthmaps.txt``, ``images.txt``).
 
 Every text file may hold blank lines and ``#`` comments (from ``#`` to the end of the line).
-Events files are parsed a block of lines at a time at C speed by ``np.loadtxt``; only a block
-that fails is scanned again line by line, to name the first bad line and say how to fix it.
+Events files are read in chunks of whole lines and parsed at C speed: a large chunk of plain
+lines by Arrow's CSV reader, any other by ``np.loadtxt``; only a block that fails its checks
+is scanned again line by line, to name the first bad line and say how to fix it.
 """
 
 from __future__ import annotations
 
+import functools
+import io
 import itertools
 import math
 import warnings
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -32,8 +37,16 @@ __all__ = [
 
 #: Events formatted per ``write`` call when writing ``events.txt`` (bounds the memory used).
 _WRITE_CHUNK = 1_000_000
-#: Most lines parsed per block when reading (a list of Python strings: bounds its memory).
+#: Most lines parsed per block by ``np.loadtxt`` (a list of Python strings: bounds its memory).
 _READ_LINES = 1 << 16
+#: Bytes read at a time, in whole lines (about 550,000 events of 30 bytes; as Python strings
+#: for ``np.loadtxt``, some 50 MB).
+_CHUNK_BYTES = 1 << 24
+#: The smallest chunk parsed by Arrow: importing pyarrow (0.1 s) costs more than it saves on
+#: fewer than about 130,000 lines (``np.loadtxt``: 0.85 s a million).
+_ARROW_BYTES = 1 << 22
+#: The columns of an events file, as Arrow parses them.
+_TXYP = {name: np.dtype(kind) for name, kind in zip("txyp", ("f8", "i4", "i4", "i1"), strict=True)}
 
 
 def _numbered(lines: Iterable[str], first: int) -> Iterator[tuple[int, str]]:
@@ -192,29 +205,137 @@ def _table(lines: list[str]) -> np.ndarray:
     return table
 
 
+def _arrow_columns(chunk: bytes) -> tuple[np.ndarray, ...] | None:
+    """``t, x, y, p`` of a chunk of plain ``t x y p`` lines (one space apart, ``\\n`` endings, no
+    comments or blank lines, so row i is line i) by Arrow's multithreaded CSV reader, or None
+    for anything else. Arrow's floats are correctly rounded, as ``np.loadtxt``'s are."""
+    if b"#" in chunk or b"\r" in chunk or b"\n\n" in chunk or chunk.startswith(b"\n"):
+        return None
+    import pyarrow as pa
+    from pyarrow import csv
+
+    types = {name: pa.from_numpy_dtype(dtype) for name, dtype in _TXYP.items()}
+    try:
+        table = csv.read_csv(
+            pa.py_buffer(chunk),
+            read_options=csv.ReadOptions(column_names=list(types)),
+            parse_options=csv.ParseOptions(delimiter=" "),
+            convert_options=csv.ConvertOptions(column_types=types),
+        )
+    except pa.ArrowException:
+        return None
+    if table.num_rows == 0 or any(column.null_count for column in table.columns):
+        return None
+    return tuple(_numpy(table.column(name), dtype) for name, dtype in _TXYP.items())
+
+
+def _numpy(column: Any, dtype: np.dtype) -> np.ndarray:
+    """A null-free Arrow column of ``dtype`` as one numpy array, from its buffers (Arrow's
+    ``to_numpy`` imports pandas: 0.3 s)."""
+    return np.concatenate(
+        [
+            np.frombuffer(part.buffers()[1], dtype, len(part), part.offset * dtype.itemsize)
+            for part in column.chunks
+        ]
+    )
+
+
+def _loadtxt_columns(lines: list[str]) -> tuple[np.ndarray, ...]:
+    """``t, x, y, p`` of ``t x y p`` lines, by ``np.loadtxt``."""
+    return tuple(_table(lines).T)
+
+
+def _whole_lines(f: BinaryIO, size: int) -> Iterator[bytes]:
+    """The bytes of ``f`` in chunks of whole lines, about ``size`` bytes each (the last line
+    may lack its newline)."""
+    rest = b""
+    while data := f.read(size):
+        data = rest + data
+        cut = data.rfind(b"\n") + 1
+        rest = data[cut:]
+        if cut:
+            yield data[:cut]
+    if rest:
+        yield rest
+
+
+def _text_lines(chunk: bytes) -> list[str]:
+    """The lines of ``chunk`` as a text-mode read gives them: bad bytes as U+FFFD, any
+    newline convention."""
+    return io.StringIO(chunk.decode("utf-8", errors="replace"), newline=None).readlines()
+
+
+@dataclass(frozen=True)
+class _Lines:
+    """Where a block's events come from: ``text()`` its lines (made only when needed),
+    numbered from ``first``; ``plain``: one event per line, none blank or commented."""
+
+    text: Callable[[], list[str]]
+    first: int
+    plain: bool
+
+    def line_of(self, row: int) -> int:
+        """The line number of the block's event ``row``."""
+        if self.plain:
+            return self.first + row
+        return next(itertools.islice(_numbered(self.text(), self.first), row, None))[0]
+
+
+class _TxtChecker:
+    """The checks that span blocks of a ``t x y p`` file: times sorted across them, one
+    polarity convention (0/1 or -1/+1) throughout."""
+
+    def __init__(self, path: Path, size: tuple[int, int]) -> None:
+        self.path, self.size = path, size
+        self.previous = -math.inf
+        self.negative: tuple[float, int] | None = None  # the first polarity other than 1, its line
+
+    def block(self, parse: Callable[[], tuple[np.ndarray, ...]], lines: _Lines) -> Block:
+        """The checked block of the columns ``parse()`` gives (``t, x, y, p``) for ``lines``;
+        a bad block's lines are scanned to name the first bad one."""
+        try:
+            t, x, y, p = parse()
+            source = str(self.path)
+            events = EventStream(x, y, t, normalise_polarity(p, source), *self.size, source)
+            other = np.flatnonzero(p != 1)
+            if t.size and t[0] < self.previous:
+                raise ValueError("timestamps not sorted")
+            if other.size and self.negative is not None and p[other[0]] != self.negative[0]:
+                raise ValueError("polarity 0/1 and -1/+1 mixed")
+        except ValueError as exc:
+            text = lines.text()
+            _name_bad_line(self.path, text, lines.first, self.size, self.previous, self.negative)
+            last = lines.first + len(text) - 1
+            raise ValueError(f"{self.path} lines {lines.first}..{last}: {exc}") from None
+        if other.size and self.negative is None:
+            self.negative = (float(p[other[0]]), lines.line_of(int(other[0])))
+        self.previous = float(t[-1]) if t.size else self.previous
+        return Block(events.t, events.x, events.y, events.p)
+
+
 def txt_blocks(path: Path, size: tuple[int, int], block_events: int) -> Iterator[Block]:
-    """The events of a ``t x y p`` file, ``block_events`` lines (at most ``_READ_LINES``) at a
-    time, each block checked; a bad block is scanned line by line to name its bad line."""
-    negative: tuple[float, int] | None = None  # the first polarity other than 1, and its line
-    previous, first = -math.inf, 1
-    with path.open(encoding="utf-8", errors="replace") as f:
-        while lines := list(itertools.islice(f, min(block_events, _READ_LINES))):
-            try:
-                t, x, y, p = _table(lines).T
-                events = EventStream(x, y, t, normalise_polarity(p, str(path)), *size, str(path))
-                other = np.flatnonzero(p != 1)
-                if t.size and t[0] < previous:
-                    raise ValueError("timestamps not sorted")
-                if other.size and negative is not None and p[other[0]] != negative[0]:
-                    raise ValueError("polarity 0/1 and -1/+1 mixed")
-            except ValueError as exc:
-                _name_bad_line(path, lines, first, size, previous, negative)
-                raise ValueError(f"{path} lines {first}..{first + len(lines) - 1}: {exc}") from None
-            if other.size and negative is None:
-                line = next(itertools.islice(_numbered(lines, first), int(other[0]), None))[0]
-                negative = (float(p[other[0]]), line)
-            previous, first = (float(t[-1]) if t.size else previous), first + len(lines)
-            yield Block(events.t, events.x, events.y, events.p)
+    """The events of a ``t x y p`` file, at most ``block_events`` a block, each checked; a
+    bad block is scanned line by line to name its bad line. Plain chunks of at least
+    ``_ARROW_BYTES`` are parsed by Arrow (a million lines in 0.13 s against 0.85 s) and
+    checked whole; the others by ``np.loadtxt``, ``_READ_LINES`` lines at most at a time."""
+    checker, first = _TxtChecker(path, size), 1
+    with path.open("rb") as f:
+        for chunk in _whole_lines(f, _CHUNK_BYTES):
+            columns = _arrow_columns(chunk) if len(chunk) >= _ARROW_BYTES else None
+            if columns is not None:
+                lines = _Lines(functools.partial(_text_lines, chunk), first, plain=True)
+                whole = checker.block(functools.partial(tuple, columns), lines)
+                for start in range(0, len(whole.t), block_events):
+                    part = slice(start, start + block_events)
+                    yield Block(whole.t[part], whole.x[part], whole.y[part], whole.p[part])
+                first += chunk.count(b"\n") + (not chunk.endswith(b"\n"))
+                continue
+            text, step = _text_lines(chunk), min(block_events, _READ_LINES)
+            for start in range(0, len(text), step):
+                part = text[start : start + step]
+                lines = _Lines(functools.partial(list, part), first + start, plain=False)
+                yield checker.block(functools.partial(_loadtxt_columns, part), lines)
+            first += len(text)
 
 
 def write_events_txt(events: EventStream, path: Path) -> None:
