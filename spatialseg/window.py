@@ -614,9 +614,12 @@ def smoothed_labels(
     (:func:`~spatialseg.mrf.conditional_labels`); neighbours in space-time, the time scaled
     by the events' image speed (:func:`image_speed`; at least a pixel over the window).
     Unlabelled events stay -1."""
-    index = np.flatnonzero(labels >= 0)
+    smoothable = labels >= 0
     if inner is not None:
-        index = np.intersect1d(index, inner, assume_unique=True)
+        own = np.zeros_like(smoothable)
+        own[inner] = True
+        smoothable &= own
+    index = np.flatnonzero(smoothable)
     if len(index) < 2:
         return labels
     ev = window.events
