@@ -31,6 +31,7 @@ __all__ = [
     "initial_motions",
     "kmeans",
     "lift_constraints",
+    "lift_velocities",
     "time_surfaces",
 ]
 
@@ -389,6 +390,21 @@ def lift_constraints(
     lifted_a[use, 0] = rows[use] / norm[use, None]
     lifted_b[use, 0] = b[use, 0] / norm[use]
     return lifted_a, lifted_b
+
+
+def lift_velocities(lift: np.ndarray, labels: np.ndarray, flows: np.ndarray) -> np.ndarray:
+    """The 3-D velocity (K x 3) of each of K image-plane motions ``flows`` (K x 2, px/s):
+    the least-squares ``theta`` with ``L theta = flow`` over the events labelled with it,
+    ``L`` (M, 2, 3) each event's ``d(u', v')/dtheta`` (:func:`lift_constraints`); zero for a
+    motion without events."""
+    thetas = np.zeros((len(flows), 3))
+    for c in range(len(flows)):
+        own = lift[labels == c]
+        if len(own):
+            normal = np.einsum("nij,nik->jk", own, own)
+            right = np.einsum("nij,i->j", own, flows[c, :2])
+            thetas[c] = np.linalg.lstsq(normal, right, rcond=None)[0]
+    return thetas
 
 
 def _spread(centre: np.ndarray, radius: float, k: int, dim: int) -> np.ndarray:

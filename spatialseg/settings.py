@@ -205,8 +205,9 @@ class InitSettings:
     #: start of ``auto`` and keep the highest total contrast.
     method: str = "auto"
     #: method=auto: the starts tried (each runs the whole clustering); previous: the
-    #: preceding window's final velocities (not in a recording's first window).
-    auto: tuple[str, ...] = ("image_flow", "tiles", "previous")
+    #: preceding window's final velocities (not in a recording's first window); planar: the
+    #: planar model's segmentation of the window, lifted to 3-D (the spatial model only).
+    auto: tuple[str, ...] = ("image_flow", "tiles", "previous", "planar")
     tiles: TilesSettings = field(default_factory=TilesSettings)
     #: Flow starts: plane-fit neighbourhood radius in cells.
     radius: int = 3

@@ -34,6 +34,7 @@ from spatialseg.recording import Recording
 from spatialseg.settings import ClusteringSettings, InitSettings, Settings
 
 __all__ = [
+    "PLANAR",
     "PREVIOUS",
     "Start",
     "StartInput",
@@ -52,6 +53,10 @@ log = logging.getLogger("spatialseg.pipeline")
 #: The start ``init.auto`` may add: the preceding window's final velocities (windows after
 #: a recording's first; :func:`spatialseg.pipeline.segment_recording`).
 PREVIOUS = "previous"
+
+#: The start from the planar model's segmentation of the window; the planar model itself
+#: does not run it (:func:`spatialseg.window.segment_window`).
+PLANAR = "planar"
 
 
 @dataclass(frozen=True, eq=False)
@@ -224,6 +229,37 @@ def _time_surface_start(given: StartInput) -> motion_init.InitResult:
         max_speed=float(given.bounds[:, 1].max()),
         **_flow_settings(given.settings.init),
     )
+
+
+@register_start(PLANAR)
+def _planar_start(given: StartInput) -> motion_init.InitResult:
+    """The window's fitted events segmented by the planar model (from the other starts of
+    ``init.auto``), each cluster's image velocity lifted to 3-D over its events
+    (:func:`~spatialseg.motion_init.lift_velocities`); for the planar model itself, the
+    ``image_flow`` start.
+
+    Decision: the image plane has no motion in depth to collapse events onto, so its
+    partition keeps apart objects a 3-D loop from flows or tiles can merge; the total
+    contrast judges it against the other starts."""
+    from spatialseg.window import segment_window  # at call time: window imports this module
+
+    window, prepared, settings = given.window, given.prepared, given.settings
+    if prepared.dim == 2:
+        return _image_flow_start(given)
+    fitted = replace(window, events=window.events.select(prepared.valid), ground_truth=None)
+    inner = tuple(s for s in settings.init.auto if s not in (PLANAR, PREVIOUS)) or ("image_flow",)
+    planar = replace(
+        settings,
+        n_clusters=given.k,
+        model=replace(settings.model, name="planar", xy_scale=None),
+        init=replace(settings.init, method="auto", auto=inner),
+    )
+    result = segment_window(fitted, planar, given.optimizer, seed=given.seed)
+    lift = project_jacobian(prepared.points, window.camera.intrinsics)[:, :2]
+    labels = result.labels
+    thetas = motion_init.lift_velocities(lift, labels, result.clustering.thetas[:, :2])
+    thetas = np.clip(thetas, given.bounds[:, 0], given.bounds[:, 1])
+    return motion_init.InitResult(thetas, np.full((len(labels), 3), np.nan), 0, False, labels)
 
 
 def initialise(

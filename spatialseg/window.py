@@ -52,6 +52,7 @@ from spatialseg.points import (
 from spatialseg.recording import Camera, Recording
 from spatialseg.settings import ClusteringSettings, Settings, settings_from
 from spatialseg.starts import (
+    PLANAR,
     PREVIOUS,
     init_candidates,
     initialise,
@@ -136,7 +137,12 @@ def segment_window(
     smoothed, as each context window's own span labels it."""
     wanted = settings.cluster_count
     k = wanted or 1  # n_clusters=auto fits one motion first
-    starts = [s for s in init_candidates(settings.init) if s != PREVIOUS or previous is not None]
+    starts = [
+        s
+        for s in init_candidates(settings.init)
+        if (s != PREVIOUS or previous is not None)
+        and (s != PLANAR or settings.model.name != "planar")
+    ]
     alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
     timings: dict[str, float] = {}
     start = time.perf_counter()

@@ -19,7 +19,7 @@ def test_the_defaults_need_no_config_file():
     settings = settings_from({})
     assert settings == Settings()
     assert settings.window.events == 15000 and settings.clustering.p_step_sigma == (1.5, 4.0)
-    assert settings.init.auto == ("image_flow", "tiles", "previous")
+    assert settings.init.auto == ("image_flow", "tiles", "previous", "planar")
     assert (
         settings.cluster_count == 2 and settings_from({"n_clusters": "auto"}).cluster_count is None
     )

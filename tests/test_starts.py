@@ -11,10 +11,12 @@ import optimizers
 from spatialseg import motion_init, starts
 from spatialseg.clustering import initial_memberships
 from spatialseg.config import compose_config
+from spatialseg.grid import project_jacobian
 from spatialseg.points import prepare, search_bounds
 from spatialseg.scenes import load_scene
 from spatialseg.settings import InitSettings, Settings, settings_from
 from spatialseg.starts import (
+    PLANAR,
     StartInput,
     available_starts,
     init_candidates,
@@ -22,6 +24,7 @@ from spatialseg.starts import (
     register_start,
     start_named,
 )
+from spatialseg.window import segment_window
 
 K = 2
 
@@ -123,3 +126,73 @@ def test_a_registered_start_is_selectable_with_no_other_edit(monkeypatch, window
     for taken in ("tiles", "auto", "previous", ""):
         with pytest.raises(ValueError, match="start"):
             register_start(taken)(still)
+
+
+def test_lift_velocities_recovers_each_clusters_3d_velocity():
+    """Two clusters at their own depths, each moving sideways (one image velocity for all
+    its events): their image velocities lift back to the 3-D velocities exactly; a motion
+    without events lifts to zero."""
+    rng = np.random.default_rng(3)
+    labels = np.repeat([0, 1], 200)
+    depth = np.where(labels == 0, 2.0, 5.0)
+    points = np.column_stack([rng.uniform(-1, 1, 400), rng.uniform(-0.5, 0.5, 400), depth])
+    lift = project_jacobian(points, np.array([300.0, 320.0, 170.0, 130.0]))[:, :2]
+    truth = np.array([[0.4, -0.1, 0.0], [-0.5, 0.2, 0.0]])
+    flows = np.array([[300.0 * 0.4 / 2, 320.0 * -0.1 / 2], [300.0 * -0.5 / 5, 320.0 * 0.2 / 5]])
+    lifted = motion_init.lift_velocities(lift, labels, np.vstack([flows, [[9.0, 9.0]]]))
+    np.testing.assert_allclose(lifted[:2], truth, atol=1e-9)
+    assert not lifted[2].any()
+
+
+def test_the_planar_start_is_the_planar_segmentation_lifted(window):
+    """The planar start labels each fitted event as the planar model segments those events,
+    and each lifted velocity moves its cluster's events across the image about as the
+    planar motion does; for the planar model it is the image_flow start."""
+    settings, win, prepared, bounds = window
+    init = initialise(
+        win,
+        prepared,
+        _with_method(settings, PLANAR),
+        K,
+        bounds,
+        seed=0,
+        optimizer=optimizers.create("ssa_ga"),
+    )
+    if prepared.dim == 2:
+        flow = initialise(win, prepared, _with_method(settings, "image_flow"), K, bounds, seed=0)
+        np.testing.assert_array_equal(init.thetas, flow.thetas)
+        np.testing.assert_array_equal(init.labels, flow.labels)
+        return
+    fitted = replace(win, events=win.events.select(prepared.valid), ground_truth=None)
+    planar = replace(
+        settings,
+        n_clusters=K,
+        model=replace(settings.model, name="planar", xy_scale=None),
+        init=replace(settings.init, method="auto", auto=("image_flow", "tiles")),
+    )
+    own = segment_window(fitted, planar, optimizers.create("ssa_ga"), seed=0)
+    np.testing.assert_array_equal(init.labels, own.labels)
+    lift = project_jacobian(prepared.points, win.camera.intrinsics)[:, :2]
+    held = [c for c in range(K) if (init.labels == c).any()]
+    assert held
+    for c in held:
+        moved = np.einsum("nij,j->ni", lift[init.labels == c], init.thetas[c]).mean(axis=0)
+        np.testing.assert_allclose(moved, own.clustering.thetas[c, :2], rtol=0.05, atol=1.0)
+
+
+def test_the_planar_model_runs_no_planar_start():
+    """For the planar model, ``planar`` in init.auto adds no start: the same labels as
+    without it, from the flow start."""
+    cfg = compose_config("+scene=interior", "model=planar")
+    _, win = next(load_scene(cfg["scene"], seed=0, window_events=2000).windows())
+    settings = settings_from(cfg)
+
+    def segmented(auto: tuple[str, ...]):
+        init = replace(settings.init, method="auto", auto=auto)
+        return segment_window(
+            win, replace(settings, init=init), optimizers.create("ssa_ga"), seed=0
+        )
+
+    with_planar, without = segmented(("image_flow", PLANAR)), segmented(("image_flow",))
+    assert with_planar.init_method == "image_flow"
+    np.testing.assert_array_equal(with_planar.labels, without.labels)
