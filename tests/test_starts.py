@@ -54,18 +54,19 @@ def _with_method(settings: Settings, name: str) -> Settings:
     return replace(settings, init=replace(settings.init, method=name))
 
 
+def _run_start(window, name: str) -> motion_init.InitResult:
+    """The start ``name`` on the fixture's window, K motions, with the run's optimiser."""
+    settings, win, prepared, bounds = window
+    optimizer = optimizers.create("ssa_ga")
+    return initialise(
+        win, prepared, _with_method(settings, name), K, bounds, seed=0, optimizer=optimizer
+    )
+
+
 @pytest.mark.parametrize("name", available_starts())
 def test_every_start_gives_k_velocities_and_a_label_per_point(window, name):
-    settings, win, prepared, bounds = window
-    init = initialise(
-        win,
-        prepared,
-        _with_method(settings, name),
-        K,
-        bounds,
-        seed=0,
-        optimizer=optimizers.create("ssa_ga"),
-    )
+    settings, _, prepared, bounds = window
+    init = _run_start(window, name)
     assert isinstance(init, motion_init.InitResult)
     assert init.thetas.shape == (K, 3) and np.isfinite(init.thetas).all()
     velocities = init.thetas[:, : prepared.dim]
@@ -149,15 +150,7 @@ def test_the_planar_start_is_the_planar_segmentation_lifted(window):
     and each lifted velocity moves its cluster's events across the image about as the
     planar motion does; for the planar model it is the image_flow start."""
     settings, win, prepared, bounds = window
-    init = initialise(
-        win,
-        prepared,
-        _with_method(settings, PLANAR),
-        K,
-        bounds,
-        seed=0,
-        optimizer=optimizers.create("ssa_ga"),
-    )
+    init = _run_start(window, PLANAR)
     if prepared.dim == 2:
         flow = initialise(win, prepared, _with_method(settings, "image_flow"), K, bounds, seed=0)
         np.testing.assert_array_equal(init.thetas, flow.thetas)
