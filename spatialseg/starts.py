@@ -236,7 +236,7 @@ def _planar_start(given: StartInput) -> motion_init.InitResult:
     """The window's fitted events segmented by the planar model (from the other starts of
     ``init.auto``), each cluster's image velocity lifted to 3-D over its events
     (:func:`~spatialseg.motion_init.lift_velocities`); for the planar model itself, the
-    ``image_flow`` start, as when the planar segmentation leaves a motion without events.
+    ``image_flow`` start, as when every lifted velocity is the same (nothing to start apart).
 
     Decision: the image plane has no motion in depth to collapse events onto, so its
     partition keeps apart objects a 3-D loop from flows or tiles can merge; the total
@@ -256,11 +256,11 @@ def _planar_start(given: StartInput) -> motion_init.InitResult:
     )
     result = segment_window(fitted, planar, given.optimizer, seed=given.seed)
     labels = result.labels
-    if len(np.unique(labels[labels >= 0])) < given.k:  # a motion without events to lift
-        return _image_flow_start(given)
     lift = project_jacobian(prepared.points, window.camera.intrinsics)[:, :2]
     thetas = motion_init.lift_velocities(lift, labels, result.clustering.thetas[:, :2])
     thetas = np.clip(thetas, given.bounds[:, 0], given.bounds[:, 1])
+    if given.k > 1 and not np.ptp(thetas, axis=0).any():  # one velocity for every motion
+        return _image_flow_start(given)
     return motion_init.InitResult(thetas, np.full((len(labels), 3), np.nan), 0, False, labels)
 
 
