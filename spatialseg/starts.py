@@ -260,6 +260,9 @@ def _planar_start(given: StartInput) -> motion_init.InitResult:
     thetas = motion_init.lift_velocities(lift, labels, result.clustering.thetas[:, :2])
     thetas = np.clip(thetas, given.bounds[:, 0], given.bounds[:, 1])
     if given.k > 1 and not np.ptp(thetas, axis=0).any():  # one velocity for every motion
+        log.info(
+            "the planar segmentation lifts to one velocity for all %d motions: flow init", given.k
+        )
         return _image_flow_start(given)
     return motion_init.InitResult(thetas, np.full((len(labels), 3), np.nan), 0, False, labels)
 
