@@ -10,7 +10,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -113,6 +113,9 @@ class WindowResult:
     init_fallback: bool
     init_method: str = ""  # the start kept (init.method, or the one init.method=auto chose)
     ids: np.ndarray | None = None  # the object id of each cluster (segment_recording links)
+    #: Each start's total contrast at the end of its loop, with the number of motions kept
+    #: (the judge of ``init.method=auto``; before the search box grows and the refit).
+    start_totals: dict[str, float] = field(default_factory=dict)
 
 
 def segment_window(
@@ -185,10 +188,13 @@ def segment_window(
 
     timings["init"] = timings["cluster"] = 0.0
 
+    totals: dict[int, dict[str, float]] = {}  # per number of motions, each start's total
+
     def best_start(k: int) -> tuple[ClusteringResult, motion_init.InitResult, str]:
         """The loop from each start with ``k`` motions (``previous`` only where the window
         before found ``k``), the highest total contrast kept."""
         best: tuple[ClusteringResult, motion_init.InitResult, str] | None = None
+        totals[k] = {}
         for method in starts:
             if method == PREVIOUS and (previous is None or len(previous) != k):
                 continue
@@ -212,6 +218,7 @@ def segment_window(
             start = time.perf_counter()
             result = cluster(init, method, bounds)
             timings["cluster"] += time.perf_counter() - start
+            totals[k][method] = float(result.total)
             if progress is not None and len(starts) > 1:
                 log.debug("%s, start %s: total contrast %.6g", progress, method, result.total)
             if best is None or result.total > best[0].total:
@@ -230,6 +237,7 @@ def segment_window(
         kept = best_start(wanted)
     evaluator = shared()[0]
     result, init, method = kept
+    start_totals = totals[len(result.thetas)]
     start = time.perf_counter()
     while (wider := widened_box(result.thetas, bounds, ceiling)) is not None:
         start_wider = previous_init(
@@ -287,7 +295,15 @@ def segment_window(
         labels = smoothed_labels(window, prepared, result, probabilities, labels, clustering, inner)
         timings["smooth"] = time.perf_counter() - start
     return WindowResult(
-        labels, probabilities, result, prepared, t_ref, timings, bool(init.fallback), method
+        labels,
+        probabilities,
+        result,
+        prepared,
+        t_ref,
+        timings,
+        bool(init.fallback),
+        method,
+        start_totals=start_totals,
     )
 
 

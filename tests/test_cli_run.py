@@ -53,6 +53,9 @@ def test_simulated_scene_run_writes_all_outputs(tmp_path):
     first = result["windows"][0]["clusters"]
     assert [c["id"] for c in first] == [0, 1]
     assert all(len(c["theta"]) == 3 and np.isfinite(c["variance"]) for c in first)
+    for window in result["windows"]:  # every start's total, the kept start's the highest
+        totals = window["start_totals"]
+        assert len(totals) >= 3 and max(totals, key=totals.get) == window["init_method"]
     assert result["metrics"]["accuracy"] > 0.9
     assert {"load", "segment", "total"} <= set(result["timings"])
     for png in ("clusters", "windows", "objects"):  # the summary

@@ -413,7 +413,7 @@ def _with_init(cfg: dict, **init) -> Settings:
 
 def test_auto_init_keeps_the_start_with_the_highest_total_contrast(interior):
     """init.method=auto clusters from each start of init.auto and keeps the result whose
-    final total contrast (the objective) is highest."""
+    final total contrast (the objective) is highest; each start's total is reported."""
     cfg, rec = interior
     _, window = next(rec.windows())
     alone = {
@@ -427,6 +427,10 @@ def test_auto_init_keeps_the_start_with_the_highest_total_contrast(interior):
     )
     best = max(alone, key=lambda m: alone[m].clustering.values.sum())
     assert auto.init_method == best and alone["tiles"].init_method == "tiles"
+    assert set(auto.start_totals) == set(cfg["init"]["auto"]) - {"previous"}
+    assert max(auto.start_totals, key=auto.start_totals.get) == best
+    for method, res in alone.items():
+        assert res.start_totals == {method: auto.start_totals[method]}
     assert np.array_equal(auto.labels, alone[best].labels)
     assert np.array_equal(auto.clustering.thetas, alone[best].clustering.thetas)
 
