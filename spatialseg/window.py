@@ -140,12 +140,7 @@ def segment_window(
     smoothed, as each context window's own span labels it."""
     wanted = settings.cluster_count
     k = wanted or 1  # n_clusters=auto fits one motion first
-    starts = [
-        s
-        for s in init_candidates(settings.init)
-        if (s != PREVIOUS or previous is not None)
-        and (s != PLANAR or settings.model.name != "planar")
-    ]
+    starts = _window_starts(settings, previous is not None)
     alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
     timings: dict[str, float] = {}
     start = time.perf_counter()
@@ -359,6 +354,20 @@ def check_config(settings: Settings | Mapping[str, Any]) -> Settings:
     if settings.depth.name != "onnx":  # building it is its check; onnx's loads the network
         make_depth_source(settings.depth.as_config())
     return settings
+
+
+def _window_starts(settings: Settings, has_previous: bool) -> list[str]:
+    """The starts a window runs (:func:`~spatialseg.starts.init_candidates`), each once:
+    ``previous`` only with a preceding window's velocities; for the planar model the
+    ``planar`` start is its ``image_flow`` start (:func:`~spatialseg.starts.initialise`), so
+    ``init.method=planar`` runs that and ``init.auto`` does not run it twice."""
+    names: list[str] = []
+    for name in init_candidates(settings.init):
+        if name == PLANAR and settings.model.name == "planar":
+            name = "image_flow"
+        if (name != PREVIOUS or has_previous) and name not in names:
+            names.append(name)
+    return names
 
 
 def _with_start(settings: Settings, method: str) -> Settings:

@@ -182,13 +182,13 @@ def test_the_planar_start_is_the_planar_segmentation_lifted(window):
 
 def test_the_planar_model_runs_no_planar_start():
     """For the planar model, ``planar`` in init.auto adds no start: the same labels as
-    without it, from the flow start."""
+    without it, from the flow start; ``init.method=planar`` (alone) runs the flow start."""
     cfg = compose_config("+scene=interior", "model=planar")
     _, win = next(load_scene(cfg["scene"], seed=0, window_events=2000).windows())
     settings = settings_from(cfg)
 
-    def segmented(auto: tuple[str, ...]):
-        init = replace(settings.init, method="auto", auto=auto)
+    def segmented(auto: tuple[str, ...], method: str = "auto"):
+        init = replace(settings.init, method=method, auto=auto)
         return segment_window(
             win, replace(settings, init=init), optimizers.create("ssa_ga"), seed=0
         )
@@ -196,3 +196,6 @@ def test_the_planar_model_runs_no_planar_start():
     with_planar, without = segmented(("image_flow", PLANAR)), segmented(("image_flow",))
     assert with_planar.init_method == "image_flow"
     np.testing.assert_array_equal(with_planar.labels, without.labels)
+    for alone in (segmented((PLANAR,)), segmented(("image_flow",), method=PLANAR)):
+        assert alone.init_method == "image_flow"
+        np.testing.assert_array_equal(alone.labels, without.labels)
