@@ -15,7 +15,7 @@ import numpy as np
 
 from spatialseg import edpa
 from spatialseg.denoise import denoise_mask
-from spatialseg.grid import VoxelGrid, grid_around
+from spatialseg.grid import VoxelGrid, grid_around, project_jacobian
 from spatialseg.objectives import make_objective
 from spatialseg.recording import Camera, Recording
 from spatialseg.settings import ClusteringSettings, DenoiseSettings, Settings, smoothing
@@ -26,6 +26,7 @@ __all__ = [
     "Prepared",
     "fit_sample",
     "fit_support",
+    "image_jacobian",
     "off_edge_events",
     "p_step_settings",
     "planar_points",
@@ -272,6 +273,13 @@ def reference_time(t: np.ndarray, mode: str) -> float:
     if mode == "middle":
         return float(0.5 * (t.min() + t.max()))
     raise ValueError(f"volume.t_ref must be 'start' or 'middle', got {mode!r}")
+
+
+def image_jacobian(prepared: Prepared, camera: Camera) -> np.ndarray:
+    """Each point's pinhole Jacobian ``d(u, v) / d(X, Y, Z)`` (M x 2 x 3): how a 3-D velocity
+    moves its event across the image (:func:`~spatialseg.grid.project_jacobian`'s first two
+    rows), the link the flow and planar starts and the image speed use."""
+    return project_jacobian(prepared.points, camera.intrinsics)[:, :2]
 
 
 def spatial_velocities(thetas: np.ndarray) -> np.ndarray:

@@ -18,10 +18,10 @@ import numpy as np
 import optimizers
 from spatialseg import hypotheses, motion_init
 from spatialseg.clustering import p_step_from_every_event
-from spatialseg.grid import project_jacobian
 from spatialseg.points import (
     ModelEvaluator,
     Prepared,
+    image_jacobian,
     p_step_settings,
     planar_points,
     reference_time,
@@ -197,7 +197,7 @@ def _image_flow_start(given: StartInput) -> motion_init.InitResult:
         return _time_surface_start(given)
     events = window.events.select(prepared.valid)
     planar = planar_points(replace(window, events=events, ground_truth=None), 1.0)
-    lift = project_jacobian(prepared.points, window.camera.intrinsics)[:, :2]
+    lift = image_jacobian(prepared, window.camera)
     return motion_init.initial_motions(
         planar.points,
         planar.t,
@@ -256,7 +256,7 @@ def _planar_start(given: StartInput) -> motion_init.InitResult:
     )
     result = segment_window(fitted, planar, given.optimizer, seed=given.seed)
     labels = result.labels
-    lift = project_jacobian(prepared.points, window.camera.intrinsics)[:, :2]
+    lift = image_jacobian(prepared, window.camera)
     thetas = motion_init.lift_velocities(lift, labels, result.clustering.thetas[:, :2])
     thetas = np.clip(thetas, given.bounds[:, 0], given.bounds[:, 1])
     if given.k > 1 and not np.ptp(thetas, axis=0).any():  # one velocity for every motion

@@ -33,11 +33,11 @@ from spatialseg.clustering import (
     weak_cluster,
 )
 from spatialseg.depth import make_depth_source
-from spatialseg.grid import project_jacobian
 from spatialseg.neighbours import grid_order
 from spatialseg.points import (
     ModelEvaluator,
     Prepared,
+    image_jacobian,
     off_edge_events,
     p_step_settings,
     prepare,
@@ -618,13 +618,13 @@ def unique_rows(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def image_speed(prepared: Prepared, thetas: np.ndarray, p: np.ndarray, camera: Camera) -> float:
     """The fitted events' median image speed (pixels per second) under their likeliest
     motion: a planar velocity is one; a spatial one moves its point across the image by the
-    pinhole's Jacobian (:func:`~spatialseg.grid.project_jacobian`)."""
+    pinhole's Jacobian (:func:`~spatialseg.points.image_jacobian`)."""
     if not len(p):
         return 0.0
     own = spatial_velocities(thetas)[p.argmax(axis=1)]
     if prepared.dim == 2:
         return float(np.median(np.linalg.norm(own[:, :2], axis=1)))
-    jacobian = project_jacobian(prepared.points, camera.intrinsics)[:, :2]
+    jacobian = image_jacobian(prepared, camera)
     flow = np.einsum("nij,nj->ni", jacobian, own)
     return float(np.median(np.linalg.norm(flow, axis=1)))
 
