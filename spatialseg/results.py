@@ -109,7 +109,7 @@ def window_summary(res: WindowResult, truth: np.ndarray | None, motions: Any) ->
         "stop_reason": c.reason,
         "init_fallback": res.init_fallback,
         "init_method": res.init_method,
-        "start_totals": res.start_totals,  # each start's total contrast, the highest kept
+        "start_totals": res.start_totals,  # each start's total contrast (window.kept_run)
         "timings": {k: round(v, 6) for k, v in res.timings.items()},
         "history": {
             "total": [r.total for r in c.history],

@@ -202,7 +202,8 @@ class InitSettings:
     """Initial motions and memberships (spatialseg.motion_init)."""
 
     #: tiles, image_flow, time_surface (the paper's 3 planes), or auto: cluster from each
-    #: start of ``auto`` and keep the highest total contrast.
+    #: start of ``auto`` and keep the highest total contrast (the previous start's within 5 %
+    #: of it: spatialseg.window.kept_run).
     method: str = "auto"
     #: method=auto: the starts tried (each runs the whole clustering); previous: the
     #: preceding window's final velocities (not in a recording's first window); planar: the

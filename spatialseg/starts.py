@@ -291,8 +291,9 @@ def initialise(
 
 def init_candidates(init: InitSettings) -> list[str]:
     """The starts a window is clustered from: ``init.method``, or for ``auto`` each of
-    ``init.auto`` (:func:`spatialseg.window.segment_window` keeps the result with the highest
-    total contrast; ``previous`` runs only where a preceding window has been segmented).
+    ``init.auto`` (:func:`spatialseg.window.kept_run` chooses among their results: the highest
+    total contrast, or ``previous`` within a margin of it; ``previous`` runs only where a
+    preceding window has been segmented).
 
     Decision: the flow start fails where per-event flows do not separate the motions (a
     camera walking forward, ``ego_forward``), the tile start where a tile cannot tell motion

@@ -28,8 +28,10 @@ from spatialseg.scenes import load_scene
 from spatialseg.settings import RefitSettings, Settings, settings_from, smoothing
 from spatialseg.starts import previous_init
 from spatialseg.window import (
+    PREVIOUS_MARGIN,
     WindowResult,
     check_config,
+    kept_run,
     prior_weights,
     segment_window,
     widened_box,
@@ -439,7 +441,8 @@ def test_previous_start_is_skipped_without_a_previous_window_and_can_only_raise_
     interior,
 ):
     """``previous`` in init.auto adds a start only when segment_window is handed velocities;
-    the result kept then has at least the total contrast of the other starts'."""
+    the result kept then has at least the total contrast of the other starts' less the
+    margin the previous start is kept by."""
     cfg, rec = interior
     _, window = next(rec.windows())
     flow = _with_init(cfg, method="auto", auto=["image_flow"])
@@ -449,7 +452,26 @@ def test_previous_start_is_skipped_without_a_previous_window_and_can_only_raise_
     skipped = segment_window(window, both, optimizers.create("ssa_ga"), seed=0)
     given = segment_window(window, both, optimizers.create("ssa_ga"), seed=0, previous=truth)
     assert np.array_equal(skipped.labels, alone.labels) and skipped.init_method == "image_flow"
-    assert given.clustering.values.sum() >= alone.clustering.values.sum()
+    kept, other = given.clustering.values.sum(), alone.clustering.values.sum()
+    assert kept * (1 + PREVIOUS_MARGIN) >= other
+
+
+def _run(total: float, method: str):
+    """A start's loop that ended at ``total`` (one cluster), as :func:`kept_run` sees it."""
+    return ClusteringResult(np.zeros((1, 3)), np.ones((4, 1)), np.array([total])), None, method
+
+
+def test_the_previous_start_is_kept_unless_another_beats_it_by_the_margin():
+    """Without a previous start the highest total is kept (the first of equal ones); with
+    one, another start replaces it only when more than PREVIOUS_MARGIN above it."""
+    flow, tiles, planar = _run(1.0, "image_flow"), _run(2.0, "tiles"), _run(2.0, "planar")
+    assert kept_run([flow, tiles, planar]) is tiles
+    within = _run(1 + PREVIOUS_MARGIN / 2, "tiles")
+    beyond = _run(1 + 2 * PREVIOUS_MARGIN, "tiles")
+    previous = _run(1.0, "previous")
+    assert kept_run([flow, within, previous]) is previous
+    assert kept_run([flow, beyond, previous]) is beyond
+    assert kept_run([_run(0.5, "image_flow"), previous]) is previous
 
 
 def test_previous_init_labels_events_by_one_p_step_at_the_given_velocities(interior):
@@ -591,7 +613,7 @@ def test_refit_measures_velocities_off_the_occlusion_edges():
     loop ended; the refit recovers the true one from the rest (with no edges marked it
     stays), within its radius. The memberships and the history stay the loop's; evals=0
     leaves the result as it was."""
-    from spatialseg.clustering import ClusteringResult, IterationRecord
+    from spatialseg.clustering import IterationRecord
     from spatialseg.grid import grid_around
     from spatialseg.points import Prepared
     from spatialseg.window import refit_velocities
