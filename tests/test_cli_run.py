@@ -374,3 +374,26 @@ def test_an_unknown_plots_value_is_refused_naming_the_choices(tmp_path):
         "figures too)"
     )
     assert not (tmp_path / "result.json").exists()
+
+
+def test_a_scene_with_more_motions_than_n_clusters_is_named_on_one_line(tmp_path):
+    """The shipped three-motion scene at the default two clusters: one WARNING says so and
+    names the fix; with n_clusters=3 nothing is said."""
+    common = (
+        "+scene=three",
+        "window.events=3000",
+        "window.count=1",
+        "output.plots=false",
+        "tracking=none",
+    )
+    warned = spatialseg(*common, f"hydra.run.dir={tmp_path / 'two'}", cwd=tmp_path)
+    assert warned.returncode == 0, warned.stderr
+    lines = [line for line in warned.stdout.splitlines() if "[WARNING]" in line]
+    assert len(lines) == 1, warned.stdout
+    assert lines[0].endswith(
+        "the ground truth has 3 moving objects but n_clusters=2: set n_clusters=3 (or auto) "
+        "to segment each apart"
+    )
+    quiet = spatialseg(*common, "n_clusters=3", f"hydra.run.dir={tmp_path / 'three'}", cwd=tmp_path)
+    assert quiet.returncode == 0, quiet.stderr
+    assert "moving object" not in quiet.stdout
