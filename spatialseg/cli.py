@@ -229,20 +229,21 @@ def _run_tracked(cfg: DictConfig, out_dir: Path, tracked: LiveRun) -> dict[str, 
 
 
 def warn_motion_count(recording: Recording, settings: Settings) -> None:
-    """One WARNING line when the recording's ground truth moves another number of objects
-    than ``n_clusters`` asks for (not with ``auto``): a scene of three motions segmented
-    into the default two scores low with nothing else to say why."""
+    """One WARNING line when the recording's ground truth holds another number of motions
+    (its objects, a moving camera's static scene among them) than ``n_clusters`` asks for
+    (not with ``auto``): a scene of three motions segmented into the default two scores low
+    with nothing else to say why."""
     truth, wanted = recording.ground_truth, settings.cluster_count
     if truth is None or wanted is None:
         return
-    moving = len(np.unique(truth.labels[truth.labels >= 0]))
-    if moving and moving != wanted:
+    motions = len(np.unique(truth.labels[truth.labels >= 0]))
+    if motions and motions != wanted:
         log.warning(
             "the ground truth has %s but n_clusters=%d: set n_clusters=%d (or auto) to "
             "segment each apart",
-            plural(moving, "moving object"),
+            plural(motions, "motion"),
             wanted,
-            moving,
+            motions,
         )
 
 

@@ -391,9 +391,9 @@ def test_a_scene_with_more_motions_than_n_clusters_is_named_on_one_line(tmp_path
     lines = [line for line in warned.stdout.splitlines() if "[WARNING]" in line]
     assert len(lines) == 1, warned.stdout
     assert lines[0].endswith(
-        "the ground truth has 3 moving objects but n_clusters=2: set n_clusters=3 (or auto) "
-        "to segment each apart"
+        "the ground truth has 3 motions but n_clusters=2: set n_clusters=3 (or auto) to "
+        "segment each apart"
     )
     quiet = spatialseg(*common, "n_clusters=3", f"hydra.run.dir={tmp_path / 'three'}", cwd=tmp_path)
     assert quiet.returncode == 0, quiet.stderr
-    assert "moving object" not in quiet.stdout
+    assert "[WARNING]" not in quiet.stdout
