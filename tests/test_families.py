@@ -165,6 +165,18 @@ def test_moving_camera_families_spread_the_static_scene_over_depth():
             assert low < 5.0 < high and high / low >= 1.7, (family, seed, low, high)
 
 
+def test_moving_camera_families_draw_motions_a_segmentation_can_tell_apart():
+    # seed 6 drew two objects 1.7 % apart in velocity before the rule (issue #25's dev run)
+    for family in ("ego_sideways", "ego_forward"):
+        for seed in [*SEEDS, 6]:
+            scene = _drawn(family, seed).scene
+            motions = [-np.asarray(scene["camera"]["ego_velocity"]), *_relative(scene)]
+            for i, a in enumerate(motions):
+                for b in motions[i + 1 :]:
+                    larger = max(np.linalg.norm(a), np.linalg.norm(b))
+                    assert np.linalg.norm(a - b) >= 0.25 * larger, (family, seed)
+
+
 def test_long_is_one_window_of_many_events_with_a_clock_that_does_not_start_at_zero():
     for seed in SEEDS:
         drawn = _drawn("long", seed)

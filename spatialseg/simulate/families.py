@@ -539,19 +539,22 @@ def _ego_layout(
 ) -> _Layout:
     """A moving camera's layout: the static scene's median image speed (a render of it)
     sets the window; one or two independent boxes (0.3-0.7 m wide, 0.4-1.2 m tall: bins,
-    bicycles, dogs) move across it in front of the static scene (:meth:`_Tools.place`);
+    bicycles, dogs) move across it in front of the static scene (:meth:`_Tools.place`),
+    every two motions (the static scene's among them) 25 % apart as in ``same_direction``;
     one holding under :data:`MIN_EGO_SHARE` of a pilot simulation's events is brought
     nearer (at most to a quarter of the sensor wide, half of it tall, and 1 m away)."""
     rng, cam = tools.rng, tools.cam
     speed, backdrop = _static_view(_probe(tools, _Layout([], 0.0, 1, background, props, ego)))
     windows = tools.windows()
     half = 0.5 * windows * displacement / speed
-    things = []
+    things: list[_Thing] = []
     for i in range(int(rng.integers(1, 3))):
         metres = np.array([rng.uniform(0.3, 0.7), rng.uniform(0.4, 1.2)])
         depth = 3.0  # placeholder: place() stands it before the static scene
+        motions = [-ego] + [t.velocity for t in things]
         world = ego.copy()
-        while np.linalg.norm(world - ego) < 0.5:  # it must move in the image too
+        # it must move in the image too, and apart from every motion drawn before it
+        while np.linalg.norm(world - ego) < 0.5 or not _distinct([*motions, world - ego], 0.25):
             world = np.array(
                 [rng.choice([-1.0, 1.0]) * rng.uniform(0.6, 1.8), 0.0, rng.uniform(-0.3, 0.3)]
             )
