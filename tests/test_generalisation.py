@@ -6,6 +6,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
@@ -132,7 +133,33 @@ def test_the_truths_total_beats_a_segmentation_that_stands_still(tmp_path):
         still, truth, motions, settings, seed=1, windows=1
     )
     assert again == best  # the truth's total does not depend on what was found
-    assert standing < best and standing < found
+    assert standing < best
+    # the same partition, polished from other velocities: the same peak
+    assert standing == pytest.approx(found, rel=1e-6)
+
+
+def test_the_truths_partition_found_at_velocities_a_little_off_scores_near_the_truth(tmp_path):
+    # both partitions are polished alike: the truth's refitted alone beat its own partition
+    # found at velocities 10 % off by 3.4 % (a search failure where there was none)
+    drawn = generalisation.draw_scene("equal_motion", 1)
+    recording = generalisation.load_scene_recording(drawn, tmp_path)
+    cfg = generalisation.compose_config("model=spatial", "n_clusters=2", *FAST.split(","))
+    settings = generalisation.check_config(cfg)
+    optimizer = generalisation.instantiate(cfg["optimizer"])
+    used, seg = generalisation.segment_loaded(recording, settings, optimizer, seed=1)
+    window = seg.windows[0]
+    index, span, inner = next(used.spans(settings.window.context))
+    truth = used.ground_truth.labels[index[0] - inner[0] :][: len(span.events)]
+    motions = used.ground_truth.motions
+    own = truth[window.prepared.valid]
+    ids = [o for o in motions if np.any(own == o)]
+    onehot = np.column_stack([own == o for o in ids]).astype(np.float64)
+    off = 1.1 * np.array([motions[o] for o in ids], dtype=np.float64)
+    clustering = replace(window.clustering, thetas=off, probabilities=onehot)
+    found, best = generalisation.window_totals(
+        replace(window, clustering=clustering), truth, motions, settings, seed=1, windows=1
+    )
+    assert abs(found - best) <= generalisation.TOTAL_MARGIN * best
 
 
 def test_failure_table_splits_failed_runs_by_which_total_is_higher():
