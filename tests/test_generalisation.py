@@ -114,20 +114,25 @@ def test_totals_give_each_spatial_window_the_found_and_the_true_total(tmp_path):
         assert found > 0 and truth > 0
 
 
-def test_the_truths_total_beats_a_segmentation_that_stands_still(tmp_path):
+def _first_window(tmp_path: Path):
+    """``equal_motion`` seed 1 segmented fast: its first window, the span's true labels, the
+    true motions and the settings, as :func:`generalisation.window_totals` takes them."""
     drawn = generalisation.draw_scene("equal_motion", 1)
     recording = generalisation.load_scene_recording(drawn, tmp_path)
     cfg = generalisation.compose_config("model=spatial", "n_clusters=2", *FAST.split(","))
     settings = generalisation.check_config(cfg)
     optimizer = generalisation.instantiate(cfg["optimizer"])
     used, seg = generalisation.segment_loaded(recording, settings, optimizer, seed=1)
-    window = seg.windows[0]
+    index, span, inner = next(used.spans(settings.window.context))
+    truth = used.ground_truth.labels[index[0] - inner[0] :][: len(span.events)]
+    return seg.windows[0], truth, used.ground_truth.motions, settings
+
+
+def test_the_truths_total_beats_a_segmentation_that_stands_still(tmp_path):
+    window, truth, motions, settings = _first_window(tmp_path)
     still = replace(
         window, clustering=replace(window.clustering, thetas=0 * window.clustering.thetas)
     )
-    index, span, inner = next(used.spans(settings.window.context))
-    truth = used.ground_truth.labels[index[0] - inner[0] :][: len(span.events)]
-    motions = used.ground_truth.motions
     found, best = generalisation.window_totals(window, truth, motions, settings, seed=1, windows=1)
     standing, again = generalisation.window_totals(
         still, truth, motions, settings, seed=1, windows=1
@@ -141,16 +146,7 @@ def test_the_truths_total_beats_a_segmentation_that_stands_still(tmp_path):
 def test_the_truths_partition_found_at_velocities_a_little_off_scores_near_the_truth(tmp_path):
     # both partitions are polished alike: the truth's refitted alone beat its own partition
     # found at velocities 10 % off by 3.4 % (a search failure where there was none)
-    drawn = generalisation.draw_scene("equal_motion", 1)
-    recording = generalisation.load_scene_recording(drawn, tmp_path)
-    cfg = generalisation.compose_config("model=spatial", "n_clusters=2", *FAST.split(","))
-    settings = generalisation.check_config(cfg)
-    optimizer = generalisation.instantiate(cfg["optimizer"])
-    used, seg = generalisation.segment_loaded(recording, settings, optimizer, seed=1)
-    window = seg.windows[0]
-    index, span, inner = next(used.spans(settings.window.context))
-    truth = used.ground_truth.labels[index[0] - inner[0] :][: len(span.events)]
-    motions = used.ground_truth.motions
+    window, truth, motions, settings = _first_window(tmp_path)
     own = truth[window.prepared.valid]
     ids = [o for o in motions if np.any(own == o)]
     onehot = np.column_stack([own == o for o in ids]).astype(np.float64)
