@@ -4,7 +4,7 @@
         [--models spatial planar spatial:clustering.max_iterations=10]
         [--families opposite many ...] [--json OUT] [--jobs J] [--cache DIR]
         [--fix depth_flicker=0.1 ...] [--density D] [--resume] [--optimiser-seeds N]
-        [--first-run R] [--totals]
+        [--first-run R] [--totals] [--sensors 1280x720 ...]
 
 Seeds of ``dev`` are 0-999, those of ``heldout`` 1000 and above: choose defaults on
 ``dev`` only, report both. Each scene is drawn from its family and seed
@@ -28,7 +28,8 @@ several seeds per scene measures the settings, not the seeds; ``--first-run 1`` 
 same settings on other seeds, the spread a change must beat. ``--totals`` records, per
 spatial window, the total contrast of the segmentation found and of the truth
 (:func:`window_totals`) and prints which failed runs the search failed (the truth scores
-higher: a better search would find it) and which the objective failed.
+higher: a better search would find it) and which the objective failed. ``--sensors``
+keeps only the scenes drawn on those sensors (the draw, not the simulation, says which).
 
 Prints a Markdown table per family and model: accuracy mean, 10th percentile and worst row,
 the per-window-matched accuracy, mean IoU, velocity error, unassigned share and time. The
@@ -72,6 +73,7 @@ from spatialseg.recording import Recording
 from spatialseg.settings import Settings
 from spatialseg.simulate.families import (
     FAMILIES,
+    SENSORS,
     FamilyScene,
     Modifiers,
     draw_scene,
@@ -361,6 +363,28 @@ def failure_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+#: The sensors a family draws from, as ``--sensors`` names them.
+SENSOR_NAMES = [f"{width}x{height}" for width, height in SENSORS]
+
+
+def scenes_to_run(
+    families: list[str],
+    seeds: list[int],
+    fixed: dict[str, float],
+    done: set[tuple[str, int]],
+    sensors: list[str] | None = None,
+) -> list[tuple[str, int]]:
+    """The (family, seed) scenes a run segments: those not ``done`` and, with ``sensors``,
+    drawn on one of them (drawing a scene is cheap; simulating it is not)."""
+    return [
+        (f, s)
+        for f in families
+        for s in seeds
+        if (f, s) not in done
+        and (sensors is None or draw_scene(f, s, **fixed).summary["sensor"] in sensors)
+    ]
+
+
 def _fixed_modifiers(items: list[str]) -> dict[str, float]:
     """``--fix NAME=VALUE`` pairs as modifier settings (checked by :class:`Modifiers`)."""
     fixed = {}
@@ -427,6 +451,14 @@ def main() -> None:
         help="also record, per spatial window, the total contrast of the segmentation found "
         "and of the truth, and print where the search or the objective failed",
     )
+    parser.add_argument(
+        "--sensors",
+        nargs="+",
+        default=None,
+        choices=SENSOR_NAMES,
+        metavar="WxH",
+        help=f"only the scenes drawn on these sensors ({', '.join(SENSOR_NAMES)})",
+    )
     args = parser.parse_args()
     if args.per_family < 1 or args.jobs < 1 or args.optimiser_seeds < 1:
         parser.error("--per-family, --jobs and --optimiser-seeds must be >= 1")
@@ -453,9 +485,7 @@ def main() -> None:
     done = {(r["family"], r["seed"]) for r in rows}
     tasks = [
         (f, s, args.models, fixed, args.cache, args.optimiser_seeds, args.first_run, args.totals)
-        for f in args.families
-        for s in seeds
-        if (f, s) not in done
+        for f, s in scenes_to_run(args.families, seeds, fixed, done, args.sensors)
     ]
     # SIGTERM (a batch system's stop) unwinds through the pool's block, which terminates its
     # workers: killed outright, the parent would leave them running their scenes

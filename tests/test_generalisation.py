@@ -13,6 +13,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 
 import generalisation
 
+from spatialseg.simulate.families import draw_scene
+
 ROW_KEYS = {
     "family", "seed", "model", "accuracy", "accuracy_per_window", "mean_iou",
     "velocity_error", "unassigned", "time_s", "n_events",
@@ -90,6 +92,19 @@ def test_a_density_that_is_not_positive_is_refused_in_one_line(density, monkeypa
         generalisation.main()
     assert stopped.value.code == 2
     assert "--density must be a finite number > 0" in capsys.readouterr().err
+
+
+def test_sensors_keep_only_the_scenes_drawn_on_them():
+    seeds = generalisation.split_seeds("heldout", 10)
+    every = generalisation.scenes_to_run(["many", "looming"], seeds, {}, set())
+    wide = generalisation.scenes_to_run(["many", "looming"], seeds, {}, set(), ["1280x720"])
+    on = {scene: draw_scene(*scene).summary["sensor"] for scene in every}
+    assert wide == [scene for scene in every if on[scene] == "1280x720"]
+    assert 0 < len(wide) < len(every)
+    done = {wide[0]}
+    assert (
+        generalisation.scenes_to_run(["many", "looming"], seeds, {}, done, ["1280x720"]) == wide[1:]
+    )
 
 
 def test_motions_found_is_the_share_with_as_many_objects_as_motions():
