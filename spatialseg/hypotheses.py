@@ -27,6 +27,7 @@ __all__ = [
     "greedy_cover",
     "image_tiles",
     "tile_motions",
+    "widest_cover",
 ]
 
 
@@ -165,6 +166,37 @@ def distinct_motions(shifts: np.ndarray, weights: np.ndarray) -> np.ndarray:
     return np.array(kept, dtype=np.int64)
 
 
+def _distinct_proposals(
+    velocities: np.ndarray,
+    counts: np.ndarray,
+    k: int,
+    shifts: Callable[[np.ndarray], np.ndarray] | None,
+) -> np.ndarray:
+    """The tiles' proposals the cover chooses among: the :func:`distinct_motions` (with
+    ``shifts``) when at least ``k`` are distinct, else all."""
+    if shifts is None:
+        return velocities
+    distinct = distinct_motions(shifts(velocities), counts)
+    return velocities[distinct] if len(distinct) >= k else velocities
+
+
+def widest_cover(
+    raws: list[np.ndarray], weights: np.ndarray, k: int, explained: float | None
+) -> int:
+    """Which of several proposal sets (their tiles x proposals contrasts ``raws``) a greedy
+    cover of ``k`` explains most with: the tile weight explained (:func:`greedy_cover`),
+    then the graded sum, each tile's scores relative to its best proposal of any set; the
+    first set on a tie."""
+    best = np.maximum(np.max([raw.max(axis=1) for raw in raws], axis=0), 1e-300)
+    reach = []
+    for raw in raws:
+        scores = raw / best[:, None]
+        covered = scores[:, greedy_cover(scores, weights, k, explained)].max(axis=1)
+        count = 0.0 if explained is None else float(((covered >= explained) * weights).sum())
+        reach.append((count, float((covered * weights).sum())))
+    return max(range(len(raws)), key=reach.__getitem__)
+
+
 def tile_motions(
     tiles: Tiles,
     k: int,
@@ -177,6 +209,7 @@ def tile_motions(
     explained: float | None,
     seed: int,
     shifts: Callable[[np.ndarray], np.ndarray] | None = None,
+    flatten: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """K velocities (K x dim) and each tile's motion (T,): the greedy cover of the tiles' own
     maxima (``optimizer``), then ``rounds`` of re-fitting each velocity on its tiles' events
@@ -186,15 +219,25 @@ def tile_motions(
     ``shifts(velocities)``: their :func:`~spatialseg.points.voxel_shifts`; with it, the
     cover chooses among the :func:`distinct_motions` only, the denser tile's of alike ones
     (among all when fewer than ``k`` are distinct, so that it still picks ``k``).
+    ``flatten(velocities)``: each tile's velocity with the same image motion and no motion
+    in depth; with it, the maxima or their flattened forms, whichever set's cover explains
+    more tiles (:func:`widest_cover`).
 
     Decision: every tile's contrast under every tile's maximum is most of the start's cost
     on a large window (T x T group contrasts), and the tiles of one object propose
-    velocities the volume cannot tell apart."""
+    velocities the volume cannot tell apart. ``flatten``: over a tile a motion in depth
+    moves the events almost as a sideways one does, so a tile's maximum lies anywhere on a
+    ridge in ``vz`` and the tiles of one object propose velocities that each explain part
+    of it; flattened, the tiles of an object moving across the view agree, while a
+    forward-moving camera's static scene needs its ``vz`` for one velocity to explain its
+    tiles together, and the cover's reach tells the two apart (docs/results.md,
+    session 64)."""
     own = tiles.own_maxima(optimizer, bounds, evals=evals, seed=seed)
-    if shifts is not None:
-        distinct = distinct_motions(shifts(own), tiles.counts)
-        own = own[distinct] if len(distinct) >= k else own
-    raw = tiles.contrasts(own)
+    sets = [own] if flatten is None else [own, np.clip(flatten(own), bounds[:, 0], bounds[:, 1])]
+    proposals = [_distinct_proposals(velocities, tiles.counts, k, shifts) for velocities in sets]
+    raws = [tiles.contrasts(velocities) for velocities in proposals]
+    pick = widest_cover(raws, tiles.counts.astype(np.float64), k, explained)
+    own, raw = proposals[pick], raws[pick]
     best = np.maximum(raw.max(axis=1), 1e-300)
     chosen = greedy_cover(raw / best[:, None], tiles.counts.astype(np.float64), k, explained)
     velocities = own[chosen].copy()

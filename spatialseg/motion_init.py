@@ -18,6 +18,7 @@ the 3-D velocity (:func:`lift_constraints`), so that events at different depths 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +34,7 @@ __all__ = [
     "lift_constraints",
     "lift_velocities",
     "time_surfaces",
+    "without_depth_motion",
 ]
 
 #: The axis pairs (u, v) of the time surfaces S1 = (X, Y), S2 = (Y, Z), S3 = (Z, X).
@@ -405,6 +407,27 @@ def lift_velocities(lift: np.ndarray, labels: np.ndarray, flows: np.ndarray) -> 
             right = np.einsum("nij,i->j", own, flows[c, :2])
             thetas[c] = np.linalg.lstsq(normal, right, rcond=None)[0]
     return thetas
+
+
+def without_depth_motion(
+    lift: np.ndarray, groups: Sequence[np.ndarray], velocities: np.ndarray
+) -> np.ndarray:
+    """Each group's 3-D velocity (G x 3) replaced by the one with ``vz = 0`` that moves the
+    group's events (indices into ``lift``, M x 2 x 3, each event's ``d(u', v')/dtheta``)
+    across the image most alike, in the least-squares sense: the same image motion
+    without motion in depth."""
+    out = np.array(velocities, dtype=np.float64, copy=True)
+    for g, members in enumerate(groups):
+        own = lift[members]
+        if not len(own):
+            continue
+        image_motion = np.einsum("nij,j->ni", own, out[g])
+        lateral = own[:, :, :2]
+        normal = np.einsum("nij,nik->jk", lateral, lateral)
+        right = np.einsum("nij,ni->j", lateral, image_motion)
+        out[g, :2] = np.linalg.lstsq(normal, right, rcond=None)[0]
+        out[g, 2] = 0.0
+    return out
 
 
 def _spread(centre: np.ndarray, radius: float, k: int, dim: int) -> np.ndarray:

@@ -30,7 +30,7 @@ from spatialseg.points import (
     voxel_shifts,
     window_objective,
 )
-from spatialseg.recording import Recording
+from spatialseg.recording import Camera, Recording
 from spatialseg.settings import ClusteringSettings, InitSettings, Settings
 
 __all__ = [
@@ -153,11 +153,24 @@ def _tiles_init(given: StartInput) -> motion_init.InitResult | None:
         explained=params.explained,
         seed=given.seed,
         shifts=lambda velocities: voxel_shifts(prepared, velocities, TILE_PROBES),
+        flatten=_flattener(prepared, given.window.camera, tiles.members),
     )
     thetas = spatial_velocities(velocities)
     labels = np.where(event_tile >= 0, tile_label[np.maximum(event_tile, 0)], -1)
     flows = np.full((len(labels), 3), np.nan)
     return motion_init.InitResult(thetas, flows, 0, False, labels)
+
+
+def _flattener(
+    prepared: Prepared, camera: Camera, members: list[np.ndarray]
+) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The spatial model's tiles' velocities without motion in depth
+    (:func:`motion_init.without_depth_motion` over each tile's events); None for the planar
+    model, which has none."""
+    if prepared.dim != 3:
+        return None
+    lift = image_jacobian(prepared, camera)
+    return lambda velocities: motion_init.without_depth_motion(lift, members, velocities)
 
 
 def _flow_settings(init: InitSettings) -> dict[str, Any]:

@@ -14,6 +14,7 @@ from spatialseg.motion_init import (
     kmeans,
     lift_constraints,
     time_surfaces,
+    without_depth_motion,
 )
 from spatialseg.recording import Camera
 
@@ -239,6 +240,35 @@ def test_lifted_constraints_make_a_static_scene_at_many_depths_one_velocity():
     assert b[:, 0].max() / b[:, 0].min() > 4
     assert lifted_b[:, 0].max() / lifted_b[:, 0].min() < 1.2  # only the off-axis angle
     assert not lifted_a[:, 1:].any() and not lifted_b[:, 1:].any()
+
+
+def _pinhole_lift(u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Each event's ``d(u', v')/dtheta`` (N x 2 x 3) for CAM at pixel (u, v) and depth z."""
+    lift = np.zeros((len(z), 2, 3))
+    lift[:, 0, 0], lift[:, 0, 2] = CAM.fx / z, -(u - CAM.cx) / z
+    lift[:, 1, 1], lift[:, 1, 2] = CAM.fy / z, -(v - CAM.cy) / z
+    return lift
+
+
+def test_a_tiles_velocity_without_depth_motion_moves_its_events_alike():
+    """Over a small patch a motion in depth moves the events almost as a sideways one: the
+    velocity with vz = 0 moves them across the image within a tenth of their speed, is
+    the least-squares one (no other vz = 0 velocity does better), leaves a velocity
+    without vz as it is, and works group by group (an empty group unchanged)."""
+    rng = np.random.default_rng(1)
+    u, v = 200 + rng.uniform(0, 16, 300), 40 + rng.uniform(0, 16, 300)
+    lift = _pinhole_lift(u, v, rng.uniform(2.9, 3.1, 300))
+    groups = [np.arange(300), np.arange(0), np.arange(150)]
+    velocities = np.array([[0.7, 0.3, 0.9], [1.0, 2.0, 3.0], [0.5, -0.2, 0.0]])
+    flat = without_depth_motion(lift, groups, velocities)
+    assert not flat[:, 2][[0, 2]].any()
+    np.testing.assert_array_equal(flat[1], velocities[1])
+    np.testing.assert_allclose(flat[2], velocities[2], atol=1e-12)
+    before, after = lift @ velocities[0], lift @ flat[0]
+    assert np.abs(after - before).max() < 0.1 * np.abs(before).max()
+    residual = np.sum((after - before) ** 2)
+    for step in ([0.01, 0.0, 0.0], [0.0, -0.01, 0.0]):
+        assert np.sum((lift @ (flat[0] + step) - before) ** 2) > residual
 
 
 def _blobs(
