@@ -186,7 +186,9 @@ def widest_cover(
     """Which of several proposal sets (their tiles x proposals contrasts ``raws``) a greedy
     cover of ``k`` explains most with: the tile weight explained (:func:`greedy_cover`),
     then the graded sum, each tile's scores relative to its best proposal of any set; the
-    first set on a tie."""
+    first set on a tie (a single set without a cover)."""
+    if len(raws) == 1:
+        return 0
     best = np.maximum(np.max([raw.max(axis=1) for raw in raws], axis=0), 1e-300)
     reach = []
     for raw in raws:
@@ -236,10 +238,11 @@ def tile_motions(
     sets = [own] if flatten is None else [own, np.clip(flatten(own), bounds[:, 0], bounds[:, 1])]
     proposals = [_distinct_proposals(velocities, tiles.counts, k, shifts) for velocities in sets]
     raws = [tiles.contrasts(velocities) for velocities in proposals]
-    pick = widest_cover(raws, tiles.counts.astype(np.float64), k, explained)
+    weights = tiles.counts.astype(np.float64)
+    pick = widest_cover(raws, weights, k, explained)
     own, raw = proposals[pick], raws[pick]
     best = np.maximum(raw.max(axis=1), 1e-300)
-    chosen = greedy_cover(raw / best[:, None], tiles.counts.astype(np.float64), k, explained)
+    chosen = greedy_cover(raw / best[:, None], weights, k, explained)
     velocities = own[chosen].copy()
     label = np.argmax(raw[:, chosen], axis=1)
     seeds = np.random.default_rng(seed + 1).integers(0, 2**31 - 1, size=(rounds, k))

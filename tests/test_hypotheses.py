@@ -89,6 +89,7 @@ def test_widest_cover_picks_the_set_that_explains_more_tiles():
     assert widest_cover([narrow, wide], weights, 2, 0.85) == 1
     assert widest_cover([wide, narrow], weights, 2, 0.85) == 0
     assert widest_cover([wide, wide.copy()], weights, 2, 0.85) == 0
+    assert widest_cover([narrow], weights, 2, 0.85) == 0
     assert widest_cover([narrow * 0.5, wide * 0.5], weights, 2, None) == 1
 
 
