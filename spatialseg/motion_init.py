@@ -403,10 +403,18 @@ def lift_velocities(lift: np.ndarray, labels: np.ndarray, flows: np.ndarray) -> 
     for c in range(len(flows)):
         own = lift[labels == c]
         if len(own):
-            normal = np.einsum("nij,nik->jk", own, own)
-            right = np.einsum("nij,i->j", own, flows[c, :2])
-            thetas[c] = np.linalg.lstsq(normal, right, rcond=None)[0]
+            thetas[c] = _nearest_velocity(own, flows[c, :2])
     return thetas
+
+
+def _nearest_velocity(jacobians: np.ndarray, image_motion: np.ndarray) -> np.ndarray:
+    """The velocity (the last axis of ``jacobians``, M x 2 x C, each event's
+    ``d(u', v')/dtheta``) whose image motion over the M events is nearest ``image_motion``
+    (M x 2, or 2 for every event), in the least-squares sense (normal equations)."""
+    motion = np.broadcast_to(image_motion, jacobians.shape[:2])
+    normal = np.einsum("nij,nik->jk", jacobians, jacobians)
+    right = np.einsum("nij,ni->j", jacobians, motion)
+    return np.linalg.lstsq(normal, right, rcond=None)[0]
 
 
 def without_depth_motion(
@@ -421,11 +429,7 @@ def without_depth_motion(
         own = lift[members]
         if not len(own):
             continue
-        image_motion = np.einsum("nij,j->ni", own, out[g])
-        lateral = own[:, :, :2]
-        normal = np.einsum("nij,nik->jk", lateral, lateral)
-        right = np.einsum("nij,ni->j", lateral, image_motion)
-        out[g, :2] = np.linalg.lstsq(normal, right, rcond=None)[0]
+        out[g, :2] = _nearest_velocity(own[:, :, :2], np.einsum("nij,j->ni", own, out[g]))
         out[g, 2] = 0.0
     return out
 
