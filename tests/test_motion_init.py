@@ -219,18 +219,26 @@ def test_initial_motions_reject_bad_input():
             initial_motions(*args, **(PARAMS | override))
 
 
+def _pinhole_lift(u: np.ndarray, v: np.ndarray, z: np.ndarray, camera: Camera = CAM) -> np.ndarray:
+    """Each event's ``d(u', v')/dtheta`` (N x 2 x 3) for ``camera`` at pixel (u, v) and
+    depth z, written out as the pinhole model gives it."""
+    lift = np.zeros((len(z), 2, 3))
+    lift[:, 0, 0], lift[:, 0, 2] = camera.fx / z, -(u - camera.cx) / z
+    lift[:, 1, 1], lift[:, 1, 2] = camera.fy / z, -(v - camera.cy) / z
+    return lift
+
+
 def test_lifted_constraints_make_a_static_scene_at_many_depths_one_velocity():
     """A camera translating sideways: image speed falls with depth (1.5-8 m), but every lifted
     constraint is satisfied by the one 3-D velocity (-2, 0, 0) and the lifted normal flows
     agree, while the image-plane ones spread by the depth ratio."""
     rng = np.random.default_rng(0)
-    n, fx, fy, cx, cy = 200, 200.0, 200.0, 119.5, 89.5
+    n = 200
     z = rng.uniform(1.5, 8.0, n)
     u, v = rng.uniform(0, 240, n), rng.uniform(0, 180, n)
     theta = np.array([-2.0, 0.0, 0.0])
-    lift = np.zeros((n, 2, 3))
-    lift[:, 0, 0], lift[:, 0, 2] = fx / z, -(u - cx) / z
-    lift[:, 1, 1], lift[:, 1, 2] = fy / z, -(v - cy) / z
+    camera = Camera(fx=200.0, fy=200.0, cx=119.5, cy=89.5, width=240, height=180)
+    lift = _pinhole_lift(u, v, z, camera)
     flow = lift @ theta  # px/s
     a, b = np.zeros((n, 3, 3)), np.zeros((n, 3))
     a[:, 0, 0] = -1.0  # vertical edges: the normal is the flow's direction
@@ -240,14 +248,6 @@ def test_lifted_constraints_make_a_static_scene_at_many_depths_one_velocity():
     assert b[:, 0].max() / b[:, 0].min() > 4
     assert lifted_b[:, 0].max() / lifted_b[:, 0].min() < 1.2  # only the off-axis angle
     assert not lifted_a[:, 1:].any() and not lifted_b[:, 1:].any()
-
-
-def _pinhole_lift(u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Each event's ``d(u', v')/dtheta`` (N x 2 x 3) for CAM at pixel (u, v) and depth z."""
-    lift = np.zeros((len(z), 2, 3))
-    lift[:, 0, 0], lift[:, 0, 2] = CAM.fx / z, -(u - CAM.cx) / z
-    lift[:, 1, 1], lift[:, 1, 2] = CAM.fy / z, -(v - CAM.cy) / z
-    return lift
 
 
 def test_a_tiles_velocity_without_depth_motion_moves_its_events_alike():
