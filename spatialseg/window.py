@@ -166,147 +166,50 @@ def segment_window(
     :meth:`~spatialseg.recording.Recording.spans`; None: every event); only their labels are
     smoothed, as each context window's own span labels it."""
     wanted = settings.cluster_count
-    k = wanted or 1  # n_clusters=auto fits one motion first
-    starts = _window_starts(settings, previous is not None)
-    alone = len(window.depth_maps) == 2  # no neighbouring windows in this span
     timings: dict[str, float] = {}
     start = time.perf_counter()
     prepared = prepare(window, settings, seed=seed)
-    check_events_per_cluster(prepared.points.shape[0], k, window.name)
+    check_events_per_cluster(prepared.points.shape[0], wanted or 1, window.name)
     t_ref = reference_time(prepared.t, settings.volume.t_ref)
     timings["prepare"] = time.perf_counter() - start
-    clustering = settings.clustering
-    bounds = search_bounds(prepared, clustering.max_displacement, clustering.max_depth_change)
-    ceiling = search_bounds(
-        prepared, 1.0, clustering.max_depth_change, windows=len(window.depth_maps) - 1
+    fit = _WindowFit(
+        window=window,
+        prepared=prepared,
+        t_ref=t_ref,
+        settings=settings,
+        optimizer=optimizer,
+        seed=seed,
+        previous=previous,
+        progress=progress,
+        on_iteration=on_iteration,
+        timings=timings,
     )
-    objectives: tuple[ModelEvaluator, StepStage | None] | None = None
-
-    def shared() -> tuple[ModelEvaluator, StepStage | None]:
-        """The objectives every start's loop shares, built on first use: after the first
-        start, so a tile start's volumes are freed first (or for the ``previous`` start)."""
-        nonlocal objectives
-        if objectives is None:
-            objectives = _window_objectives(prepared, t_ref, settings, optimizer, seed=seed)
-        return objectives
-
-    def cluster(init: motion_init.InitResult, method: str, box: np.ndarray) -> ClusteringResult:
-        """Algorithm 1 from ``init`` in the search box ``box`` (``method``: the start's name)."""
-        return _cluster_from(
-            init,
-            prepared,
-            shared(),
-            clustering,
-            optimizer,
-            box,
-            seed=seed,
-            on_iteration=_iteration_logger(progress, method, on_iteration),
-            alone=alone,
-        )
-
-    def separation(a: np.ndarray, b: np.ndarray) -> float:
-        """How far apart (voxels) two velocities move this window's points."""
-        return motion_separation(prepared, a, b)
-
     timings["init"] = timings["cluster"] = 0.0
-
-    totals: dict[int, dict[str, float]] = {}  # per number of motions, each start's total
-
-    def best_start(k: int) -> Run:
-        """The loop from each start with ``k`` motions (``previous`` only where the window
-        before found ``k``), the one :func:`kept_run` chooses kept."""
-        runs: list[Run] = []
-        totals[k] = {}
-        for method in starts:
-            if method == PREVIOUS and (previous is None or len(previous) != k):
-                continue
-            start = time.perf_counter()
-            if method == PREVIOUS:
-                assert previous is not None  # skipped above otherwise
-                init = previous_init(
-                    previous, prepared, shared()[0], clustering, bounds, alone=alone
-                )
-            else:
-                init = initialise(
-                    window,
-                    prepared,
-                    _with_start(settings, method),
-                    k,
-                    bounds,
-                    seed=seed,
-                    optimizer=optimizer,
-                )
-            timings["init"] += time.perf_counter() - start
-            start = time.perf_counter()
-            result = cluster(init, method, bounds)
-            timings["cluster"] += time.perf_counter() - start
-            totals[k][method] = float(result.total)
-            if progress is not None and len(starts) > 1:
-                log.debug("%s, start %s: total contrast %.6g", progress, method, result.total)
-            runs.append((result, init, method))
-        return kept_run(runs)
-
-    if wanted is None:
+    if wanted is None:  # n_clusters=auto: one motion first, then one more while it pays
         kept = count_motions(
-            best_start,
+            fit.best_start,
             lambda found: found[0],
-            separation,
-            max_clusters=clustering.max_clusters,
+            fit.separation,
+            max_clusters=settings.clustering.max_clusters,
         )
     else:
-        kept = best_start(wanted)
-    evaluator = shared()[0]
+        kept = fit.best_start(wanted)
     result, init, method = kept
-    start_totals = totals[len(result.thetas)]
+    start_totals = fit.totals[len(result.thetas)]
     start = time.perf_counter()
-    while (wider := widened_box(result.thetas, bounds, ceiling)) is not None:
-        start_wider = previous_init(
-            result.thetas, prepared, evaluator, clustering, wider, alone=alone
-        )
-        regrown = cluster(start_wider, f"{method}, box grown", wider)
-        kept_wider = _better(regrown, result, auto=wanted is None)
-        if progress is not None:
-            log.debug(
-                "%s: a velocity on the search box's face; box grown to +-%s, %s",
-                progress,
-                np.array2string(wider[:, 1], precision=3),
-                "kept" if kept_wider else "not kept",
-            )
-        if not kept_wider:
-            break
-        result, bounds = regrown, wider
+    result = fit.grown(result, method, auto=wanted is None)
     timings["cluster"] += time.perf_counter() - start
     start = time.perf_counter()
-    result = refit_velocities(result, prepared, t_ref, settings, bounds, seed=seed)
+    result = refit_velocities(result, prepared, t_ref, settings, fit.bounds, seed=seed)
     timings["refit"] = time.perf_counter() - start
-    sigmas = relabel_sigmas(clustering, alone=alone)
-    if sigmas is not None:
+    if relabel_sigmas(settings.clustering, alone=fit.alone) is not None:
         start = time.perf_counter()
-        scale = clustering.relabel_prior_scale
-        prior = (
-            None
-            if scale is None
-            else prior_weights(prepared, result.thetas, result.probabilities, scale)
-        )
-        relabelled = p_step(evaluator, result.thetas, result.probabilities, sigmas, 1, prior)
-        weak = weak_cluster(result.thetas, relabelled, separation)
-        if weak is not None:
-            if progress is not None:
-                log.debug(
-                    "%s: cluster %d wasted; memberships rebuilt from every event", progress, weak
-                )
-            relabelled = repaired_memberships(
-                evaluator, result.thetas, sigmas, clustering.max_iterations
-            )
-        result = replace(result, probabilities=relabelled)
+        result = fit.relabelled(result)
         timings["relabel"] = time.perf_counter() - start
     start = time.perf_counter()
-    probabilities = _full_probabilities(result.probabilities, prepared.valid)
-    if prepared.rest is not None and len(prepared.rest[0]):
-        blur = p_step_settings(clustering, alone=alone)
-        rest = label_rest(prepared, t_ref, evaluator, result, blur)
-        probabilities[prepared.rest[2]] = rest
+    probabilities = fit.probabilities(result)
     timings["label"] = time.perf_counter() - start
+    clustering = settings.clustering
     labels = assign_labels(
         probabilities[prepared.labelled], prepared.labelled, clustering.min_probability
     )
@@ -325,6 +228,179 @@ def segment_window(
         method,
         start_totals=start_totals,
     )
+
+
+@dataclass(eq=False)
+class _WindowFit:
+    """One window's clustering, shared by its starts: the prepared events, the search box
+    (grown where a motion presses on it), the objectives every start's loop uses, each
+    start's total per number of motions and the stage times of :func:`segment_window`."""
+
+    window: Recording
+    prepared: Prepared
+    t_ref: float
+    settings: Settings
+    optimizer: Any
+    seed: int
+    previous: np.ndarray | None
+    progress: str | None
+    on_iteration: Any
+    timings: dict[str, float]
+    clustering: ClusteringSettings = field(init=False)
+    starts: list[str] = field(init=False)
+    alone: bool = field(init=False)
+    bounds: np.ndarray = field(init=False)  # the search box, grown by grown()
+    ceiling: np.ndarray = field(init=False)
+    totals: dict[int, dict[str, float]] = field(default_factory=dict, init=False)
+    _objectives: tuple[ModelEvaluator, StepStage | None] | None = field(default=None, init=False)
+
+    def __post_init__(self) -> None:
+        """The starts to run, whether the span is the window alone, and the search box with
+        the ceiling it may grow to."""
+        clustering = self.clustering = self.settings.clustering
+        self.starts = _window_starts(self.settings, self.previous is not None)
+        self.alone = len(self.window.depth_maps) == 2  # no neighbouring windows in this span
+        self.bounds = search_bounds(
+            self.prepared, clustering.max_displacement, clustering.max_depth_change
+        )
+        self.ceiling = search_bounds(
+            self.prepared,
+            1.0,
+            clustering.max_depth_change,
+            windows=len(self.window.depth_maps) - 1,
+        )
+
+    def objectives(self) -> tuple[ModelEvaluator, StepStage | None]:
+        """The objectives every start's loop shares, built on first use: after the first
+        start, so a tile start's volumes are freed first (or for the ``previous`` start)."""
+        if self._objectives is None:
+            self._objectives = _window_objectives(
+                self.prepared, self.t_ref, self.settings, self.optimizer, seed=self.seed
+            )
+        return self._objectives
+
+    def cluster(
+        self, init: motion_init.InitResult, method: str, box: np.ndarray
+    ) -> ClusteringResult:
+        """Algorithm 1 from ``init`` in the search box ``box`` (``method``: the start's name)."""
+        return _cluster_from(
+            init,
+            self.prepared,
+            self.objectives(),
+            self.clustering,
+            self.optimizer,
+            box,
+            seed=self.seed,
+            on_iteration=_iteration_logger(self.progress, method, self.on_iteration),
+            alone=self.alone,
+        )
+
+    def separation(self, a: np.ndarray, b: np.ndarray) -> float:
+        """How far apart (voxels) two velocities move this window's points."""
+        return motion_separation(self.prepared, a, b)
+
+    def initial(self, method: str, k: int) -> motion_init.InitResult:
+        """The start ``method``'s ``k`` initial motions and labels."""
+        if method == PREVIOUS:
+            assert self.previous is not None  # best_start skips it otherwise
+            return previous_init(
+                self.previous,
+                self.prepared,
+                self.objectives()[0],
+                self.clustering,
+                self.bounds,
+                alone=self.alone,
+            )
+        return initialise(
+            self.window,
+            self.prepared,
+            _with_start(self.settings, method),
+            k,
+            self.bounds,
+            seed=self.seed,
+            optimizer=self.optimizer,
+        )
+
+    def best_start(self, k: int) -> Run:
+        """The loop from each start with ``k`` motions (``previous`` only where the window
+        before found ``k``), the one :func:`kept_run` chooses kept."""
+        runs: list[Run] = []
+        self.totals[k] = {}
+        for method in self.starts:
+            if method == PREVIOUS and (self.previous is None or len(self.previous) != k):
+                continue
+            start = time.perf_counter()
+            init = self.initial(method, k)
+            self.timings["init"] += time.perf_counter() - start
+            start = time.perf_counter()
+            result = self.cluster(init, method, self.bounds)
+            self.timings["cluster"] += time.perf_counter() - start
+            self.totals[k][method] = float(result.total)
+            if self.progress is not None and len(self.starts) > 1:
+                log.debug("%s, start %s: total contrast %.6g", self.progress, method, result.total)
+            runs.append((result, init, method))
+        return kept_run(runs)
+
+    def grown(self, result: ClusteringResult, method: str, *, auto: bool) -> ClusteringResult:
+        """``result``, or the loop run again from its velocities in a search box grown
+        (:func:`widened_box`) while that beats it (:func:`_better`); the box kept grown."""
+        evaluator = self.objectives()[0]
+        while (wider := widened_box(result.thetas, self.bounds, self.ceiling)) is not None:
+            start_wider = previous_init(
+                result.thetas, self.prepared, evaluator, self.clustering, wider, alone=self.alone
+            )
+            regrown = self.cluster(start_wider, f"{method}, box grown", wider)
+            kept_wider = _better(regrown, result, auto=auto)
+            if self.progress is not None:
+                log.debug(
+                    "%s: a velocity on the search box's face; box grown to +-%s, %s",
+                    self.progress,
+                    np.array2string(wider[:, 1], precision=3),
+                    "kept" if kept_wider else "not kept",
+                )
+            if not kept_wider:
+                break
+            result, self.bounds = regrown, wider
+        return result
+
+    def relabelled(self, result: ClusteringResult) -> ClusteringResult:
+        """``result`` with each event's memberships from one P-step at its final velocities
+        (``clustering.relabel_sigma``, weighted by the relabelling prior where set); where
+        that leaves a cluster weak, rebuilt from every event in every volume."""
+        sigmas = relabel_sigmas(self.clustering, alone=self.alone)
+        scale = self.clustering.relabel_prior_scale
+        prior = (
+            None
+            if scale is None
+            else prior_weights(self.prepared, result.thetas, result.probabilities, scale)
+        )
+        evaluator = self.objectives()[0]
+        relabelled = p_step(evaluator, result.thetas, result.probabilities, sigmas, 1, prior)
+        weak = weak_cluster(result.thetas, relabelled, self.separation)
+        if weak is not None:
+            if self.progress is not None:
+                log.debug(
+                    "%s: cluster %d wasted; memberships rebuilt from every event",
+                    self.progress,
+                    weak,
+                )
+            relabelled = repaired_memberships(
+                evaluator, result.thetas, sigmas, self.clustering.max_iterations
+            )
+        return replace(result, probabilities=relabelled)
+
+    def probabilities(self, result: ClusteringResult) -> np.ndarray:
+        """Memberships (N x K) of every event of the window: the fitted ones' own, those of
+        the events left out of the fit from the fitted motions (:func:`label_rest`), zeros
+        for events without depth."""
+        probabilities = _full_probabilities(result.probabilities, self.prepared.valid)
+        rest = self.prepared.rest
+        if rest is not None and len(rest[0]):
+            blur = p_step_settings(self.clustering, alone=self.alone)
+            probabilities[rest[2]] = label_rest(
+                self.prepared, self.t_ref, self.objectives()[0], result, blur
+            )
+        return probabilities
 
 
 def widened_box(thetas: np.ndarray, bounds: np.ndarray, ceiling: np.ndarray) -> np.ndarray | None:
