@@ -229,9 +229,9 @@ def _regions_start(given: StartInput) -> motion_init.InitResult | None:
     looming object beside another, ended in clusters that cut one object by motion in depth
     and lumped the others, below the total contrast of the objects apart. Where objects
     overlap in the image there are fewer regions than motions and the start declines; a
-    moving camera's static scene breaks into fragments that can still number K, where the
-    start lost accuracy, so it is not in the default ``init.auto`` (docs/results.md,
-    session 66)."""
+    moving camera's static scene fills the image, its regions need not be objects, and
+    there the start lost accuracy, so it is not in the default ``init.auto``
+    (docs/results.md, session 66)."""
     if given.optimizer is None:
         raise ValueError("init.method=regions needs the run's optimizer")
     prepared, settings, k = given.prepared, given.settings, given.k
