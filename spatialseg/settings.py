@@ -201,15 +201,13 @@ class TilesSettings:
 class InitSettings:
     """Initial motions and memberships (spatialseg.motion_init)."""
 
-    #: tiles, image_flow, regions, time_surface (the paper's 3 planes), or auto: cluster
-    #: from each start of ``auto`` and keep the highest total contrast (the previous start's
-    #: within 5 % of it: spatialseg.window.kept_run).
+    #: tiles, image_flow, time_surface (the paper's 3 planes), or auto: cluster from each
+    #: start of ``auto`` and keep the highest total contrast (the previous start's within 5 %
+    #: of it: spatialseg.window.kept_run).
     method: str = "auto"
     #: method=auto: the starts tried (each runs the whole clustering); previous: the
     #: preceding window's final velocities (not in a recording's first window); planar: the
     #: planar model's segmentation of the window, lifted to 3-D (the spatial model only).
-    #: Also available: regions, the window's K largest connected regions of events, where it
-    #: has K (spatial model; for a static camera: docs/method.md, "The regions start").
     auto: tuple[str, ...] = ("image_flow", "tiles", "previous", "planar")
     tiles: TilesSettings = field(default_factory=TilesSettings)
     #: Flow starts: plane-fit neighbourhood radius in cells.

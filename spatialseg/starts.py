@@ -14,11 +14,10 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 
 import optimizers
 from spatialseg import hypotheses, motion_init
-from spatialseg.clustering import maximize_contrast, p_step_from_every_event
+from spatialseg.clustering import p_step_from_every_event
 from spatialseg.points import (
     ModelEvaluator,
     Prepared,
@@ -37,19 +36,14 @@ from spatialseg.settings import ClusteringSettings, InitSettings, Settings
 __all__ = [
     "PLANAR",
     "PREVIOUS",
-    "REGIONS",
     "Start",
     "StartInput",
     "available_starts",
-    "event_regions",
     "init_candidates",
     "initialise",
-    "largest_regions",
     "previous_init",
-    "propose",
     "register_start",
     "start_named",
-    "with_start",
 ]
 
 # The tile start's fallback line keeps the logger it had in pipeline.py: Hydra prints the
@@ -63,10 +57,6 @@ PREVIOUS = "previous"
 #: The start from the planar model's segmentation of the window; the planar model itself
 #: does not run it (:func:`spatialseg.window.segment_window`).
 PLANAR = "planar"
-
-#: The start from the window's connected regions of events; the planar model, the 2-D
-#: baseline, does not run it (:func:`spatialseg.window.segment_window`).
-REGIONS = "regions"
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,9 +74,8 @@ class StartInput:
     optimizer: Any = None
 
 
-#: A start: the window's K initial motions from a :class:`StartInput`, or None where the
-#: window gives it nothing to propose (:func:`propose`).
-Start = Callable[[StartInput], motion_init.InitResult | None]
+#: A start: the window's K initial motions from a :class:`StartInput`.
+Start = Callable[[StartInput], motion_init.InitResult]
 
 _REGISTRY: dict[str, Start] = {}
 
@@ -192,78 +181,6 @@ def _flow_settings(init: InitSettings) -> dict[str, Any]:
     return {name: getattr(init, name) for name in names}
 
 
-def event_regions(prepared: Prepared) -> np.ndarray:
-    """Each fitted event's connected region (M,): the 8-connected components of the
-    grid's image voxels (x, y) that the events occupy, unwarped, numbered from 0."""
-    cells = np.floor(prepared.grid.continuous_index(prepared.points)[:, :2]).astype(np.int64)
-    cells -= cells.min(axis=0)
-    occupied = np.zeros(tuple(cells.max(axis=0) + 1), dtype=bool)
-    occupied[cells[:, 0], cells[:, 1]] = True
-    regions, _ = ndimage.label(occupied, structure=np.ones((3, 3), dtype=bool))
-    return regions[cells[:, 0], cells[:, 1]] - 1
-
-
-def largest_regions(region: np.ndarray, k: int, min_events: int) -> np.ndarray | None:
-    """Each event's rank (M,) among the ``k`` largest regions of at least ``min_events``
-    events (0 for the largest; -1 outside them), or None with fewer than ``k`` such."""
-    sizes = np.bincount(region)
-    big = np.flatnonzero(sizes >= min_events)
-    if len(big) < k:
-        return None
-    rank = np.full(len(sizes), -1)
-    rank[big[np.argsort(-sizes[big], kind="stable")[:k]]] = np.arange(k)
-    return rank[region]
-
-
-@register_start(REGIONS)
-def _regions_start(given: StartInput) -> motion_init.InitResult | None:
-    """Initial motions from the window's ``k`` largest connected regions of events
-    (:func:`event_regions`, at least ``init.tiles.min_events`` events each), each region's
-    velocity its own contrast maximum found as a tile's is (``init.tiles``: the run's
-    optimiser from zero velocity, then its refit optimiser); None with fewer such regions
-    (needs the run's ``optimizer``).
-
-    Decision: objects a static camera sees apart are apart in the image, and a loop that
-    starts from each object's own velocity keeps them apart, while the other starts begin
-    from motions alone: two cars driving the same way at 10-20 % different 3-D speeds, or a
-    looming object beside another, ended in clusters that cut one object by motion in depth
-    and lumped the others, below the total contrast of the objects apart. Where objects
-    overlap in the image there are fewer regions than motions and the start declines; a
-    moving camera's static scene fills the image, its regions need not be objects, and
-    there the start lost accuracy, so it is not in the default ``init.auto``
-    (docs/results.md, session 66)."""
-    if given.optimizer is None:
-        raise ValueError("init.method=regions needs the run's optimizer")
-    prepared, settings, k = given.prepared, given.settings, given.k
-    params = settings.init.tiles
-    label = largest_regions(event_regions(prepared), k, params.min_events)
-    if label is None:
-        return None
-    t_ref = reference_time(prepared.t, settings.volume.t_ref)
-
-    def evaluator_for(index: np.ndarray) -> ModelEvaluator:
-        return window_objective(prepared, t_ref, settings, index)
-
-    inside = np.flatnonzero(label >= 0)
-    grouped = window_objective(prepared, t_ref, settings, inside, groups=label[inside])
-    regions = hypotheses.Tiles(evaluator_for, label, k, grouped)
-    velocities = regions.own_maxima(
-        given.optimizer, given.bounds, evals=params.evals, seed=given.seed
-    )
-    refit = optimizers.preset(params.refit)
-    for j in range(k):
-        velocities[j] = maximize_contrast(
-            regions.objective(regions.members[j]),
-            refit,
-            velocities[j],
-            given.bounds,
-            params.evals,
-            given.seed + j,
-        )[0]
-    flows = np.full((len(label), 3), np.nan)
-    return motion_init.InitResult(spatial_velocities(velocities), flows, 0, False, label)
-
-
 @register_start("tiles")
 def _tiles_start(given: StartInput) -> motion_init.InitResult:
     """Initial motions from image tiles (:func:`_tiles_init`; needs the run's ``optimizer``);
@@ -363,28 +280,6 @@ def _planar_start(given: StartInput) -> motion_init.InitResult:
     return motion_init.InitResult(thetas, np.full((len(labels), 3), np.nan), 0, False, labels)
 
 
-def with_start(settings: Settings, method: str) -> Settings:
-    """``settings`` with ``init.method`` set to the start ``method``."""
-    return replace(settings, init=replace(settings.init, method=method))
-
-
-def propose(
-    window: Recording,
-    prepared: Prepared,
-    settings: Settings,
-    k: int,
-    bounds: np.ndarray,
-    *,
-    seed: int,
-    optimizer: Any = None,
-) -> motion_init.InitResult | None:
-    """The start ``init.method``'s initial motions (:func:`initialise`), or None where it
-    has nothing to propose (``regions`` with fewer than K regions): ``init.method=auto``
-    then runs the others."""
-    start = start_named(settings.init.method)
-    return start(StartInput(window, prepared, settings, k, bounds, seed, optimizer))
-
-
 def initialise(
     window: Recording,
     prepared: Prepared,
@@ -396,20 +291,15 @@ def initialise(
     optimizer: Any = None,
 ) -> motion_init.InitResult:
     """Initial motions by ``init.method``, a registered start (:func:`available_starts`):
-    ``image_flow`` (default), ``tiles`` and ``regions`` (need the run's ``optimizer``) or
-    ``time_surface`` (the paper's three planes; the flow-based choice for the planar
-    model's own 2-D space).
+    ``image_flow`` (default), ``tiles`` (needs the run's ``optimizer``) or ``time_surface``
+    (the paper's three planes; the flow-based choice for the planar model's own 2-D space).
 
     ``bounds`` is the model's search box (:func:`spatialseg.points.search_bounds`); flows
     faster than it are discarded. ``tiles`` falls back to ``image_flow`` when fewer than K
-    tiles have enough events, and so does any start that proposes nothing (:func:`propose`).
-    ``auto`` is resolved by :func:`spatialseg.window.segment_window` (:func:`init_candidates`)."""
-    given = (window, prepared, settings, k, bounds)
-    init = propose(*given, seed=seed, optimizer=optimizer)
-    if init is not None:
-        return init
-    log.info("init.method=%s proposes no start here: flow init", settings.init.method)
-    return propose(*given[:2], with_start(settings, "image_flow"), *given[3:], seed=seed)
+    tiles have enough events. ``auto`` is resolved by
+    :func:`spatialseg.window.segment_window` (:func:`init_candidates`)."""
+    start = start_named(settings.init.method)
+    return start(StartInput(window, prepared, settings, k, bounds, seed, optimizer))
 
 
 def init_candidates(init: InitSettings) -> list[str]:

@@ -54,11 +54,9 @@ from spatialseg.settings import ClusteringSettings, Settings, settings_from
 from spatialseg.starts import (
     PLANAR,
     PREVIOUS,
-    REGIONS,
     init_candidates,
+    initialise,
     previous_init,
-    propose,
-    with_start,
 )
 
 __all__ = [
@@ -301,9 +299,8 @@ class _WindowFit:
         """How far apart (voxels) two velocities move this window's points."""
         return motion_separation(self.prepared, a, b)
 
-    def initial(self, method: str, k: int) -> motion_init.InitResult | None:
-        """The start ``method``'s ``k`` initial motions and labels (None: it proposes none
-        in this window, :func:`~spatialseg.starts.propose`)."""
+    def initial(self, method: str, k: int) -> motion_init.InitResult:
+        """The start ``method``'s ``k`` initial motions and labels."""
         if method == PREVIOUS:
             assert self.previous is not None  # best_start skips it otherwise
             return previous_init(
@@ -314,44 +311,35 @@ class _WindowFit:
                 self.bounds,
                 alone=self.alone,
             )
-        return propose(
+        return initialise(
             self.window,
             self.prepared,
-            with_start(self.settings, method),
+            _with_start(self.settings, method),
             k,
             self.bounds,
             seed=self.seed,
             optimizer=self.optimizer,
         )
 
-    def run(self, method: str, k: int) -> Run | None:
-        """The loop from the start ``method`` with ``k`` motions, or None where the start
-        proposes none; its total recorded in :attr:`totals`."""
-        start = time.perf_counter()
-        init = self.initial(method, k)
-        self.timings["init"] += time.perf_counter() - start
-        if init is None:
-            return None
-        start = time.perf_counter()
-        result = self.cluster(init, method, self.bounds)
-        self.timings["cluster"] += time.perf_counter() - start
-        self.totals[k][method] = float(result.total)
-        if self.progress is not None and len(self.starts) > 1:
-            log.debug("%s, start %s: total contrast %.6g", self.progress, method, result.total)
-        return result, init, method
-
     def best_start(self, k: int) -> Run:
         """The loop from each start with ``k`` motions (``previous`` only where the window
-        before found ``k``), the one :func:`kept_run` chooses kept; the ``image_flow``
-        start's where every start proposes none."""
+        before found ``k``), the one :func:`kept_run` chooses kept."""
+        runs: list[Run] = []
         self.totals[k] = {}
-        runs = [
-            run
-            for method in self.starts
-            if method != PREVIOUS or (self.previous is not None and len(self.previous) == k)
-            if (run := self.run(method, k)) is not None
-        ]
-        return kept_run(runs or [self.run("image_flow", k)])
+        for method in self.starts:
+            if method == PREVIOUS and (self.previous is None or len(self.previous) != k):
+                continue
+            start = time.perf_counter()
+            init = self.initial(method, k)
+            self.timings["init"] += time.perf_counter() - start
+            start = time.perf_counter()
+            result = self.cluster(init, method, self.bounds)
+            self.timings["cluster"] += time.perf_counter() - start
+            self.totals[k][method] = float(result.total)
+            if self.progress is not None and len(self.starts) > 1:
+                log.debug("%s, start %s: total contrast %.6g", self.progress, method, result.total)
+            runs.append((result, init, method))
+        return kept_run(runs)
 
     def grown(self, result: ClusteringResult, method: str, *, auto: bool) -> ClusteringResult:
         """``result``, or the loop run again from its velocities in a search box grown
@@ -471,16 +459,21 @@ def check_config(settings: Settings | Mapping[str, Any]) -> Settings:
 
 def _window_starts(settings: Settings, has_previous: bool) -> list[str]:
     """The starts a window runs (:func:`~spatialseg.starts.init_candidates`), each once:
-    ``previous`` only with a preceding window's velocities; for the planar model, the 2-D
-    baseline, the ``planar`` and ``regions`` starts are its ``image_flow`` start, so
+    ``previous`` only with a preceding window's velocities; for the planar model the
+    ``planar`` start is its ``image_flow`` start (:func:`~spatialseg.starts.initialise`), so
     ``init.method=planar`` runs that and ``init.auto`` does not run it twice."""
     names: list[str] = []
     for name in init_candidates(settings.init):
-        if name in (PLANAR, REGIONS) and settings.model.name == "planar":
+        if name == PLANAR and settings.model.name == "planar":
             name = "image_flow"
         if (name != PREVIOUS or has_previous) and name not in names:
             names.append(name)
     return names
+
+
+def _with_start(settings: Settings, method: str) -> Settings:
+    """``settings`` with ``init.method`` set to the start ``method``."""
+    return replace(settings, init=replace(settings.init, method=method))
 
 
 def _window_objectives(

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import replace
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,19 +11,16 @@ import optimizers
 from spatialseg import motion_init, starts
 from spatialseg.clustering import initial_memberships
 from spatialseg.config import compose_config
-from spatialseg.grid import VoxelGrid, project_jacobian
+from spatialseg.grid import project_jacobian
 from spatialseg.points import prepare, search_bounds
 from spatialseg.scenes import load_scene
 from spatialseg.settings import InitSettings, Settings, settings_from
 from spatialseg.starts import (
     PLANAR,
-    REGIONS,
     StartInput,
     available_starts,
-    event_regions,
     init_candidates,
     initialise,
-    largest_regions,
     register_start,
     start_named,
 )
@@ -185,9 +181,8 @@ def test_the_planar_start_is_the_planar_segmentation_lifted(window):
 
 
 def test_the_planar_model_runs_no_planar_start():
-    """For the planar model, ``planar`` or ``regions`` in init.auto adds no start: the same
-    labels as without it, from the flow start; ``init.method=planar`` (alone) runs the flow
-    start."""
+    """For the planar model, ``planar`` in init.auto adds no start: the same labels as
+    without it, from the flow start; ``init.method=planar`` (alone) runs the flow start."""
     cfg = compose_config("+scene=interior", "model=planar")
     _, win = next(load_scene(cfg["scene"], seed=0, window_events=2000).windows())
     settings = settings_from(cfg)
@@ -198,57 +193,9 @@ def test_the_planar_model_runs_no_planar_start():
             win, replace(settings, init=init), optimizers.create("ssa_ga"), seed=0
         )
 
-    without = segmented(("image_flow",))
-    for other in (PLANAR, REGIONS):  # neither runs for the 2-D baseline
-        with_it = segmented(("image_flow", other))
-        assert with_it.init_method == "image_flow"
-        np.testing.assert_array_equal(with_it.labels, without.labels)
+    with_planar, without = segmented(("image_flow", PLANAR)), segmented(("image_flow",))
+    assert with_planar.init_method == "image_flow"
+    np.testing.assert_array_equal(with_planar.labels, without.labels)
     for alone in (segmented((PLANAR,)), segmented(("image_flow",), method=PLANAR)):
         assert alone.init_method == "image_flow"
         np.testing.assert_array_equal(alone.labels, without.labels)
-
-
-def test_event_regions_are_the_8_connected_groups_of_the_voxels_events_occupy():
-    """Events in voxels that touch, by a side or a corner, share a region; a gap of one
-    empty voxel parts them; events in one voxel share its region."""
-    grid = VoxelGrid(origin=np.zeros(3), voxel_size=np.ones(3), shape=(20, 20, 3))
-    blob = [(x, y) for x in range(1, 4) for y in range(1, 4)]
-    cells = [*blob, (4, 4), (6, 1), (12, 12), (13, 12), (13, 12)]
-    points = np.array([(x + 0.3, y + 0.3, 1.0) for x, y in cells])
-    region = event_regions(SimpleNamespace(points=points, grid=grid))
-    assert len(set(region[:10])) == 1  # the 3 x 3 blob and its diagonal neighbour
-    assert region[10] not in region[:10]  # one empty voxel away
-    assert region[11] == region[12] == region[13] and region[11] not in region[:11]
-    assert sorted(set(region)) == [0, 1, 2]
-
-
-def test_largest_regions_ranks_the_k_largest_with_enough_events():
-    region = np.array([0, 0, 0, 1, 1, 2, 2, 2, 2, 3])
-    np.testing.assert_array_equal(largest_regions(region, 2, 2), [1, 1, 1, -1, -1, 0, 0, 0, 0, -1])
-    np.testing.assert_array_equal(largest_regions(region, 3, 2), [1, 1, 1, 2, 2, 0, 0, 0, 0, -1])
-    assert largest_regions(region, 4, 2) is None  # region 3 holds one event
-    assert largest_regions(region, 3, 4) is None
-
-
-def test_a_start_that_proposes_nothing_is_skipped_and_the_flow_start_runs_if_none_does(
-    monkeypatch, window
-):
-    """A start may decline (None, as ``regions`` does with fewer regions than motions):
-    init.auto runs the others; the flow start runs where every start declines, and alone
-    (init.method) it falls back to the flow start."""
-    monkeypatch.setattr(starts, "_REGISTRY", dict(starts._REGISTRY))
-    settings, win, prepared, bounds = window
-    register_start("never")(lambda given: None)
-
-    def segmented(auto: tuple[str, ...]):
-        chosen = replace(settings, n_clusters=K, init=replace(settings.init, auto=auto))
-        return segment_window(win, chosen, optimizers.create("ssa_ga"), seed=0)
-
-    flow = segmented(("image_flow",))
-    for auto in (("never", "image_flow"), ("never",)):
-        declined = segmented(auto)
-        assert declined.init_method == "image_flow" and "never" not in declined.start_totals
-        np.testing.assert_array_equal(declined.labels, flow.labels)
-    alone = initialise(win, prepared, _with_method(settings, "never"), K, bounds, seed=0)
-    expected = initialise(win, prepared, _with_method(settings, "image_flow"), K, bounds, seed=0)
-    np.testing.assert_array_equal(alone.thetas, expected.thetas)
